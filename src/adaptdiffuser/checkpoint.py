@@ -1,0 +1,100 @@
+"""Model bundles on disk: weights, EMA weights, normalizer and the config they were trained with.
+
+A bundle directory (``models/phase0/``) holds ``model.pt``, ``ema.pt``, ``normalizer.json`` and
+``config.json``; it is written as a whole, atomically.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from adaptdiffuser.config import DiffusionParams, ModelParams
+from adaptdiffuser.data.normalizer import Normalizer
+from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
+from adaptdiffuser.io import atomic_dir, read_json, write_json
+from adaptdiffuser.models.unet import TemporalUnet
+
+BUNDLE_FILES = ("model.pt", "ema.pt", "normalizer.json", "config.json")
+
+
+def build_diffusion(model: ModelParams, diffusion: DiffusionParams, obs_dim: int, act_dim: int) -> GaussianDiffusion:
+    """A fresh diffusion model (U-Net denoiser inside) from params."""
+    net = TemporalUnet(
+        obs_dim + act_dim, dim=model.dim, dim_mults=tuple(model.dim_mults), kernel_size=model.kernel_size
+    )
+    return GaussianDiffusion(
+        net,
+        horizon=diffusion.horizon,
+        obs_dim=obs_dim,
+        act_dim=act_dim,
+        n_steps=diffusion.n_steps,
+        predict_epsilon=diffusion.predict_epsilon,
+        clip_denoised=diffusion.clip_denoised,
+        action_weight=diffusion.action_weight,
+        loss_discount=diffusion.loss_discount,
+    )
+
+
+@dataclass
+class ModelBundle:
+    """A trained model: the raw and EMA diffusion models, the normalizer and the training config."""
+
+    diffusion: GaussianDiffusion
+    ema: GaussianDiffusion
+    normalizer: Normalizer
+    config: dict[str, Any]
+
+
+def make_bundle(
+    model: ModelParams,
+    diffusion: DiffusionParams,
+    obs_dim: int,
+    act_dim: int,
+    normalizer: Normalizer,
+    **info: Any,
+) -> ModelBundle:
+    """A new, untrained bundle; ``info`` is stored in its config (task, data, phase...)."""
+    diff = build_diffusion(model, diffusion, obs_dim, act_dim)
+    config = {
+        "model": asdict(model),
+        "diffusion": asdict(diffusion),
+        "obs_dim": obs_dim,
+        "act_dim": act_dim,
+        **info,
+    }
+    return ModelBundle(diff, copy.deepcopy(diff), normalizer, config)
+
+
+def save_bundle(path: str | Path, bundle: ModelBundle) -> None:
+    """Write the bundle directory atomically (a reader never sees half of it)."""
+    with atomic_dir(path) as tmp:
+        torch.save(bundle.diffusion.model.state_dict(), tmp / "model.pt")
+        torch.save(bundle.ema.model.state_dict(), tmp / "ema.pt")
+        write_json(tmp / "normalizer.json", bundle.normalizer.state_dict())
+        write_json(tmp / "config.json", bundle.config)
+
+
+def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> ModelBundle:
+    """Load a bundle; raise ``FileNotFoundError`` naming the missing checkpoint file."""
+    path = Path(path)
+    for name in BUNDLE_FILES:
+        if not (path / name).exists():
+            raise FileNotFoundError(
+                f"checkpoint {path} is incomplete or missing: no {name} (run the stage that trains it)"
+            )
+    config = read_json(path / "config.json")
+    model = ModelParams(**config["model"])
+    diffusion = DiffusionParams(**config["diffusion"])
+    normalizer = Normalizer.from_state_dict(read_json(path / "normalizer.json"))
+    bundle = make_bundle(model, diffusion, config["obs_dim"], config["act_dim"], normalizer)
+    bundle.config = config
+    bundle.diffusion.model.load_state_dict(torch.load(path / "model.pt", map_location="cpu", weights_only=True))
+    bundle.ema.model.load_state_dict(torch.load(path / "ema.pt", map_location="cpu", weights_only=True))
+    bundle.diffusion.to(device)
+    bundle.ema.to(device)
+    return bundle

@@ -1,0 +1,275 @@
+"""The one config loader: ``params.yaml`` into typed, validated sections, and profile switching.
+
+Every stage loads the whole file through :func:`load_params`, so a bad value anywhere is rejected before any
+work starts, with a message naming the key (for example ``pretrain.steps``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from adaptdiffuser.envs.layouts import MAZES, parse_layout
+from adaptdiffuser.io import atomic_path
+
+
+class ConfigError(ValueError):
+    """A params value is missing, unknown or invalid; the message names the key."""
+
+
+@dataclass(frozen=True)
+class EnvParams:
+    maze: str = "umaze"
+    layout: list[str] | None = None
+    episode_steps: int | None = None
+    goal_radius: float = 0.5
+    reset_pos_noise: float = 0.1
+    reset_vel_noise: float = 0.1
+    tracking_p_gain: float = 1.0
+    tracking_d_gain: float = 1.0
+
+
+@dataclass(frozen=True)
+class ExpertParams:
+    p_gain: float = 10.0
+    d_gain: float = 1.0
+    jitter: float = 0.2
+    waypoint_radius: float = 0.3
+
+
+@dataclass(frozen=True)
+class CollectParams:
+    steps: int = 200_000
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class ModelParams:
+    dim: int = 16
+    dim_mults: list[int] = field(default_factory=lambda: [1, 4, 8])
+    kernel_size: int = 5
+
+
+@dataclass(frozen=True)
+class DiffusionParams:
+    horizon: int = 128
+    n_steps: int = 64
+    predict_epsilon: bool = False
+    clip_denoised: bool = True
+    action_weight: float = 1.0
+    loss_discount: float = 1.0
+
+
+@dataclass(frozen=True)
+class PretrainParams:
+    steps: int = 8000
+    batch_size: int = 32
+    grad_accum: int = 1
+    lr: float = 2e-4
+    ema_decay: float = 0.995
+    ema_every: int = 10
+    ema_start: int = 500
+    log_every: int = 100
+    checkpoint_every: int = 1000
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class PlannerParams:
+    sampler: str = "ddim"
+    sampler_steps: int = 16
+    replan_every: int = 0
+
+
+@dataclass(frozen=True)
+class EvaluateParams:
+    episodes: int = 50
+    seed: int = 1000
+    batch_size: int = 50
+    pictures: int = 4
+
+
+@dataclass(frozen=True)
+class Params:
+    env: EnvParams = field(default_factory=EnvParams)
+    expert: ExpertParams = field(default_factory=ExpertParams)
+    collect: CollectParams = field(default_factory=CollectParams)
+    model: ModelParams = field(default_factory=ModelParams)
+    diffusion: DiffusionParams = field(default_factory=DiffusionParams)
+    pretrain: PretrainParams = field(default_factory=PretrainParams)
+    planner: PlannerParams = field(default_factory=PlannerParams)
+    evaluate: EvaluateParams = field(default_factory=EvaluateParams)
+
+    @property
+    def task(self) -> str:
+        """The task name (one MLflow experiment per task), e.g. ``maze2d-umaze``."""
+        return f"maze2d-{self.env.maze}" if self.env.layout is None else "maze2d-custom"
+
+    def section(self, name: str) -> dict[str, Any]:
+        """One params section as a plain dict (for logging)."""
+        return dataclasses.asdict(getattr(self, name))
+
+
+def load_params(path: str | Path = "params.yaml") -> Params:
+    """Load and validate ``params.yaml``; raise :class:`ConfigError` naming the first bad key."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"params file not found: {path}")
+    raw = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: top level must be a mapping of sections")
+    params = _build(Params, raw, prefix="")
+    validate(params)
+    return params
+
+
+def validate(p: Params) -> None:
+    """Cross-field checks that types alone cannot express."""
+    if p.env.layout is not None:
+        try:
+            parse_layout(p.env.layout)
+        except ValueError as err:
+            raise ConfigError(f"env.layout: {err}") from err
+    elif p.env.maze not in MAZES:
+        raise ConfigError(f"env.maze: unknown maze {p.env.maze!r}; choose one of {sorted(MAZES)}")
+    _positive(p, "env.episode_steps", allow_none=True)
+    _positive(p, "env.goal_radius")
+    _non_negative(p, "env.reset_pos_noise", "env.reset_vel_noise", "expert.jitter")
+    _positive(p, "expert.p_gain", "expert.waypoint_radius", "collect.steps")
+    _positive(p, "model.dim", "model.kernel_size")
+    if not p.model.dim_mults or any(m <= 0 for m in p.model.dim_mults):
+        raise ConfigError("model.dim_mults must be a non-empty list of positive integers")
+    if p.model.kernel_size % 2 == 0:
+        raise ConfigError(f"model.kernel_size must be odd, got {p.model.kernel_size}")
+    _positive(p, "diffusion.horizon", "diffusion.n_steps", "diffusion.action_weight", "diffusion.loss_discount")
+    factor = 2 ** (len(p.model.dim_mults) - 1)
+    if p.diffusion.horizon % factor:
+        raise ConfigError(
+            f"diffusion.horizon={p.diffusion.horizon} must be divisible by {factor} "
+            f"(the U-Net halves it {len(p.model.dim_mults) - 1} times; see model.dim_mults)"
+        )
+    _positive(p, "pretrain.steps", "pretrain.batch_size", "pretrain.grad_accum", "pretrain.lr")
+    _positive(p, "pretrain.ema_every", "pretrain.log_every", "pretrain.checkpoint_every")
+    _non_negative(p, "pretrain.ema_start")
+    if not 0.0 <= p.pretrain.ema_decay < 1.0:
+        raise ConfigError(f"pretrain.ema_decay must be in [0, 1), got {p.pretrain.ema_decay}")
+    if p.planner.sampler not in ("ddpm", "ddim"):
+        raise ConfigError(f"planner.sampler must be 'ddpm' or 'ddim', got {p.planner.sampler!r}")
+    _positive(p, "planner.sampler_steps")
+    if p.planner.sampler_steps > p.diffusion.n_steps:
+        raise ConfigError(
+            f"planner.sampler_steps={p.planner.sampler_steps} exceeds diffusion.n_steps={p.diffusion.n_steps}"
+        )
+    _non_negative(p, "planner.replan_every", "evaluate.pictures")
+    _positive(p, "evaluate.episodes", "evaluate.batch_size")
+
+
+def _get(p: Params, dotted: str) -> Any:
+    section, key = dotted.split(".")
+    return getattr(getattr(p, section), key)
+
+
+def _positive(p: Params, *keys: str, allow_none: bool = False) -> None:
+    for key in keys:
+        value = _get(p, key)
+        if value is None and allow_none:
+            continue
+        if value is None or value <= 0:
+            raise ConfigError(f"{key} must be > 0, got {value}")
+
+
+def _non_negative(p: Params, *keys: str) -> None:
+    for key in keys:
+        value = _get(p, key)
+        if value < 0:
+            raise ConfigError(f"{key} must be >= 0, got {value}")
+
+
+def _build(cls: type, raw: Any, prefix: str) -> Any:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{prefix.rstrip('.') or 'params'} must be a mapping, got {type(raw).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(raw) - names)
+    if unknown:
+        raise ConfigError(f"unknown params key {prefix}{unknown[0]}; known keys: {sorted(names)}")
+    values = {}
+    for name in names & set(raw):
+        hint = hints[name]
+        key = f"{prefix}{name}"
+        if dataclasses.is_dataclass(hint):
+            values[name] = _build(hint, raw[name], prefix=f"{key}.")
+        else:
+            values[name] = _coerce(raw[name], hint, key)
+    return cls(**values)
+
+
+def _coerce(value: Any, hint: Any, key: str) -> Any:
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(value, inner[0], key)
+    if origin is list:
+        if not isinstance(value, list):
+            raise ConfigError(f"{key} must be a list, got {value!r}")
+        return [_coerce(v, args[0], f"{key}[{i}]") for i, v in enumerate(value)]
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key} must be true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int | float) or int(value) != value:
+            raise ConfigError(f"{key} must be an integer, got {value!r}")
+        return int(value)
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{key} must be a number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key} must be a string, got {value!r}")
+        return value
+    raise ConfigError(f"{key}: unsupported type {hint}")
+
+
+def deep_merge(base: dict, overlay: dict) -> dict:
+    """``base`` with ``overlay`` merged in, recursively for nested mappings."""
+    merged = dict(base)
+    for key, value in overlay.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def apply_profile(profile: str, profiles_dir: str | Path = "profiles", params_path: str | Path = "params.yaml") -> Path:
+    """Write ``params.yaml`` as the quick profile overlaid with ``profiles/<profile>.yaml``; validate first."""
+    profiles_dir = Path(profiles_dir)
+    base_path = profiles_dir / "quick.yaml"
+    overlay_path = profiles_dir / f"{profile}.yaml"
+    if not overlay_path.exists():
+        known = sorted(p.stem for p in profiles_dir.glob("*.yaml"))
+        raise ConfigError(f"unknown profile {profile!r}; known profiles: {known}")
+    base_text = base_path.read_text()
+    base = yaml.safe_load(base_text) or {}
+    merged = deep_merge(base, yaml.safe_load(overlay_path.read_text()) or {})
+    if merged == base:  # the quick profile itself: keep its comments
+        text = base_text
+    else:
+        header = f"# Written by `adaptdiffuser profile {profile}`: profiles/quick.yaml + profiles/{profile}.yaml\n"
+        text = header + yaml.safe_dump(merged, sort_keys=False)
+    params_path = Path(params_path)
+    with atomic_path(params_path) as tmp:
+        tmp.write_text(text)
+        load_params(tmp)
+    return params_path

@@ -1,0 +1,1 @@
+"""Trajectory data: the Parquet schema, expert collection and training windows."""

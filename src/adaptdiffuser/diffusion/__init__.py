@@ -1,0 +1,1 @@
+"""The diffusion process, conditioning and samplers (kept apart from the networks)."""

@@ -1,0 +1,132 @@
+"""The evaluation protocol: fixed-seed episodes, run in lock-step batches, scored against reference returns."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from tqdm import tqdm
+
+from adaptdiffuser.envs.base import PlanningEnv
+
+EnvFactory = Callable[[], PlanningEnv]
+
+
+def episode_rng(seed: int, episode: int) -> np.random.Generator:
+    """The random source of one evaluation episode (start state, random actions)."""
+    return np.random.default_rng([seed, episode])
+
+
+def normalized_score(returns: np.ndarray | float, r_min: float, r_max: float) -> np.ndarray | float:
+    """D4RL's normalized score: 100 * (R - R_min) / (R_max - R_min)."""
+    if r_max <= r_min:
+        raise ValueError(f"reference returns must satisfy R_max > R_min, got R_min={r_min}, R_max={r_max}")
+    return 100.0 * (np.asarray(returns, dtype=np.float64) - r_min) / (r_max - r_min)
+
+
+class Controller:
+    """Chooses actions for a batch of environments running in lock-step."""
+
+    def begin(self, envs: list[PlanningEnv], obs: np.ndarray, episodes: list[int]) -> None:
+        """Called once per batch after reset."""
+
+    def act(self, envs: list[PlanningEnv], obs: np.ndarray, t: int) -> np.ndarray:
+        raise NotImplementedError
+
+
+class RandomController(Controller):
+    """Uniform random actions in [-1, 1] (the R_min reference)."""
+
+    def __init__(self, seed: int) -> None:
+        self.seed = seed
+
+    def begin(self, envs, obs, episodes):
+        self.rngs = [np.random.default_rng([self.seed, ep, 1]) for ep in episodes]
+
+    def act(self, envs, obs, t):
+        return np.stack([rng.uniform(-1.0, 1.0, size=env.act_dim) for env, rng in zip(envs, self.rngs, strict=True)])
+
+
+class ExpertController(Controller):
+    """The scripted expert of each environment (the R_max reference)."""
+
+    def __init__(self, seed: int) -> None:
+        self.seed = seed
+
+    def begin(self, envs, obs, episodes):
+        for env, ep in zip(envs, episodes, strict=True):
+            env.seed_expert(int(np.random.default_rng([self.seed, ep, 2]).integers(2**31)))
+
+    def act(self, envs, obs, t):
+        return np.stack([env.expert_action(o) for env, o in zip(envs, obs, strict=True)])
+
+
+@dataclass
+class EpisodeBatchResult:
+    """Per-episode outcomes of an evaluation run."""
+
+    episodes: list[int] = field(default_factory=list)
+    returns: list[float] = field(default_factory=list)
+    final_success: list[bool] = field(default_factory=list)
+    first_goal_step: list[int] = field(default_factory=list)
+    starts: list[np.ndarray] = field(default_factory=list)
+    executed: list[np.ndarray] = field(default_factory=list)
+    plans: list[np.ndarray | None] = field(default_factory=list)
+
+
+def run_episodes(
+    make_env: EnvFactory,
+    controller: Controller,
+    n_episodes: int,
+    seed: int,
+    batch_size: int,
+    desc: str = "evaluate",
+    progress: bool = True,
+) -> EpisodeBatchResult:
+    """Run ``n_episodes`` protocol episodes (starts from :func:`episode_rng`) in batches of ``batch_size``."""
+    envs = [make_env() for _ in range(min(batch_size, n_episodes))]
+    result = EpisodeBatchResult()
+    bar = tqdm(total=n_episodes, desc=desc, disable=not progress)
+    for first in range(0, n_episodes, batch_size):
+        episodes = list(range(first, min(first + batch_size, n_episodes)))
+        batch_envs = envs[: len(episodes)]
+        obs = np.stack([env.reset(episode_rng(seed, ep)) for env, ep in zip(batch_envs, episodes, strict=True)])
+        horizon = batch_envs[0].episode_steps
+        trace = np.empty((horizon + 1, len(episodes), obs.shape[1]))
+        trace[0] = obs
+        rewards = np.zeros((horizon, len(episodes)))
+        controller.begin(batch_envs, obs, episodes)
+        for t in range(horizon):
+            actions = controller.act(batch_envs, obs, t)
+            obs = np.stack([env.step(a) for env, a in zip(batch_envs, actions, strict=True)])
+            trace[t + 1] = obs
+            rewards[t] = [env.reward(o) for env, o in zip(batch_envs, obs, strict=True)]
+        plans = getattr(controller, "first_plans", None)
+        for i, ep in enumerate(episodes):
+            hits = np.flatnonzero(rewards[:, i] > 0)
+            result.episodes.append(ep)
+            result.returns.append(float(rewards[:, i].sum()))
+            result.final_success.append(bool(rewards[-1, i] > 0))
+            result.first_goal_step.append(int(hits[0]) if len(hits) else -1)
+            result.starts.append(trace[0, i])
+            result.executed.append(trace[:, i])
+            result.plans.append(None if plans is None else plans[i])
+        bar.update(len(episodes))
+    bar.close()
+    return result
+
+
+def summarize(result: EpisodeBatchResult, r_min: float, r_max: float) -> dict[str, float | int]:
+    """The navigation metrics of ``metrics/summary.json``."""
+    returns = np.asarray(result.returns)
+    scores = normalized_score(returns, r_min, r_max)
+    n = len(returns)
+    stderr = float(scores.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0
+    return {
+        "score_mean": float(scores.mean()),
+        "score_stderr": stderr,
+        "return_mean": float(returns.mean()),
+        "n_episodes": int(n),
+        "success_rate": float(np.mean(result.final_success)),
+    }

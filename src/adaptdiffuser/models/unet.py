@@ -1,0 +1,107 @@
+"""Temporal U-Net over trajectories ``[batch, horizon, transition_dim]`` (Diffuser's architecture)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+class SinusoidalEmbedding(nn.Module):
+    """Sinusoidal embedding of the diffusion step."""
+
+    def __init__(self, dim: int) -> None:
+        super().__init__()
+        self.dim = dim
+
+    def forward(self, t: torch.Tensor) -> torch.Tensor:
+        half = self.dim // 2
+        freqs = torch.exp(-math.log(10000) * torch.arange(half, device=t.device) / max(half - 1, 1))
+        angles = t.float()[:, None] * freqs[None, :]
+        return torch.cat([angles.sin(), angles.cos()], dim=-1)
+
+
+class ConvBlock(nn.Sequential):
+    """Conv1d, GroupNorm(8), Mish."""
+
+    def __init__(self, c_in: int, c_out: int, kernel_size: int) -> None:
+        super().__init__(
+            nn.Conv1d(c_in, c_out, kernel_size, padding=kernel_size // 2),
+            nn.GroupNorm(8, c_out),
+            nn.Mish(),
+        )
+
+
+class ResidualTemporalBlock(nn.Module):
+    """Two conv blocks with the time embedding added after the first, and a residual connection."""
+
+    def __init__(self, c_in: int, c_out: int, embed_dim: int, kernel_size: int) -> None:
+        super().__init__()
+        self.first = ConvBlock(c_in, c_out, kernel_size)
+        self.second = ConvBlock(c_out, c_out, kernel_size)
+        self.time = nn.Sequential(nn.Mish(), nn.Linear(embed_dim, c_out))
+        self.residual = nn.Conv1d(c_in, c_out, 1) if c_in != c_out else nn.Identity()
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        out = self.first(x) + self.time(emb)[:, :, None]
+        return self.second(out) + self.residual(x)
+
+
+class TemporalUnet(nn.Module):
+    """Diffuser's temporal U-Net: predicts a tensor of the input's shape from a noisy trajectory and step."""
+
+    def __init__(
+        self, transition_dim: int, dim: int = 32, dim_mults: tuple[int, ...] = (1, 4, 8), kernel_size: int = 5
+    ) -> None:
+        super().__init__()
+        dims = [transition_dim, *(dim * m for m in dim_mults)]
+        pairs = list(zip(dims[:-1], dims[1:], strict=True))
+        self.downsample_factor = 2 ** (len(dim_mults) - 1)
+        self.time_mlp = nn.Sequential(
+            SinusoidalEmbedding(dim), nn.Linear(dim, dim * 4), nn.Mish(), nn.Linear(dim * 4, dim)
+        )
+        self.down = nn.ModuleList()
+        for i, (c_in, c_out) in enumerate(pairs):
+            last = i == len(pairs) - 1
+            self.down.append(
+                nn.ModuleList(
+                    [
+                        ResidualTemporalBlock(c_in, c_out, dim, kernel_size),
+                        ResidualTemporalBlock(c_out, c_out, dim, kernel_size),
+                        nn.Conv1d(c_out, c_out, 3, stride=2, padding=1) if not last else nn.Identity(),
+                    ]
+                )
+            )
+        mid = dims[-1]
+        self.mid1 = ResidualTemporalBlock(mid, mid, dim, kernel_size)
+        self.mid2 = ResidualTemporalBlock(mid, mid, dim, kernel_size)
+        self.up = nn.ModuleList()
+        for c_in, c_out in reversed(pairs[1:]):
+            self.up.append(
+                nn.ModuleList(
+                    [
+                        ResidualTemporalBlock(c_out * 2, c_in, dim, kernel_size),
+                        ResidualTemporalBlock(c_in, c_in, dim, kernel_size),
+                        nn.ConvTranspose1d(c_in, c_in, 4, stride=2, padding=1),
+                    ]
+                )
+            )
+        self.final = nn.Sequential(ConvBlock(dim, dim, kernel_size), nn.Conv1d(dim, transition_dim, 1))
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """``x``: ``[batch, horizon, transition_dim]``; ``t``: ``[batch]`` diffusion steps."""
+        if x.shape[1] % self.downsample_factor:
+            raise ValueError(f"horizon {x.shape[1]} is not divisible by {self.downsample_factor}")
+        h = x.transpose(1, 2)
+        emb = self.time_mlp(t)
+        skips = []
+        for block1, block2, downsample in self.down:
+            h = block2(block1(h, emb), emb)
+            skips.append(h)
+            h = downsample(h)
+        h = self.mid2(self.mid1(h, emb), emb)
+        for block1, block2, upsample in self.up:
+            h = torch.cat([h, skips.pop()], dim=1)
+            h = upsample(block2(block1(h, emb), emb))
+        return self.final(h).transpose(1, 2)

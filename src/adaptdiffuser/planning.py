@@ -1,0 +1,80 @@
+"""Planning with a trained model: batched goal-conditioned sampling, and the plan-following controller."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from adaptdiffuser.checkpoint import ModelBundle
+from adaptdiffuser.diffusion.samplers import Sampler
+from adaptdiffuser.envs.base import PlanningEnv
+from adaptdiffuser.evaluation import Controller
+
+
+class Planner:
+    """Samples state-action plans from start to goal with the EMA model of a bundle."""
+
+    def __init__(self, bundle: ModelBundle, sampler: Sampler, device: torch.device) -> None:
+        self.model = bundle.ema.to(device).eval()
+        self.normalizer = bundle.normalizer
+        self.sampler = sampler
+        self.device = device
+        self.act_dim = bundle.config["act_dim"]
+        self.horizon = self.model.horizon
+
+    def _normalize_states(self, states: np.ndarray) -> torch.Tensor:
+        padded = np.concatenate([np.zeros((len(states), self.act_dim)), states], axis=1)
+        normed = self.normalizer.normalize(padded)[:, self.act_dim :]
+        return torch.as_tensor(normed, dtype=torch.float32, device=self.device)
+
+    def plan(self, starts: np.ndarray, goals: np.ndarray, seed: int) -> np.ndarray:
+        """Plans ``[batch, horizon, act_dim + obs_dim]`` in raw units, from ``starts`` to ``goals``."""
+        conditions = {0: self._normalize_states(starts), self.horizon - 1: self._normalize_states(goals)}
+        generator = torch.Generator(device=self.device).manual_seed(int(seed))
+        x = self.sampler.sample(self.model, len(starts), conditions, generator)
+        return self.normalizer.unnormalize(x.double().cpu().numpy())
+
+
+class PlanFollower:
+    """Diffuser's Maze2D controller: follow ``plan[t + 1]``; after the plan ends, hold its last position."""
+
+    def __init__(self, env: PlanningEnv, plan_states: np.ndarray) -> None:
+        self.env = env
+        self.plan_states = plan_states
+
+    def waypoint(self, t: int) -> np.ndarray:
+        """The planned state to head for at ``t`` steps after the plan was made."""
+        if t + 1 < len(self.plan_states):
+            return self.plan_states[t + 1]
+        last = self.plan_states[-1].copy()
+        last[2:] = 0.0
+        return last
+
+    def act(self, obs: np.ndarray, t: int) -> np.ndarray:
+        return self.env.tracking_action(obs, self.waypoint(t))
+
+
+class PlannerController(Controller):
+    """Plan at t = 0 (and every ``replan_every`` steps if > 0), follow the plan's states in between."""
+
+    def __init__(self, planner: Planner, seed: int, replan_every: int = 0) -> None:
+        self.planner = planner
+        self.seed = seed
+        self.replan_every = replan_every
+        self.first_plans: np.ndarray | None = None
+
+    def begin(self, envs, obs, episodes):
+        self.episodes = episodes
+        self.first_plans = None
+
+    def act(self, envs, obs, t):
+        if t == 0 or (self.replan_every and t % self.replan_every == 0):
+            goals = np.stack([env.goal_state() for env in envs])
+            seed = int(np.random.SeedSequence([self.seed, self.episodes[0], t]).generate_state(1)[0])
+            plans = self.planner.plan(obs, goals, seed=seed)
+            obs_part = plans[:, :, self.planner.act_dim :]
+            self.followers = [PlanFollower(env, p) for env, p in zip(envs, obs_part, strict=True)]
+            self.plan_time = t
+            if self.first_plans is None:
+                self.first_plans = obs_part
+        return np.stack([f.act(o, t - self.plan_time) for f, o in zip(self.followers, obs, strict=True)])

@@ -1,0 +1,68 @@
+"""MLflow tracking: one experiment per task, one run per stage execution, tagged with stage and phase.
+
+The tracking URI defaults to ``sqlite:///<repo>/mlflow.db`` (``MLFLOW_TRACKING_URI`` overrides it) and each
+experiment stores artifacts under an explicit absolute location, ``<repo>/mlartifacts/<task>``. A stage that
+raises leaves its run marked FAILED.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import mlflow
+
+
+def tracking_uri(root: Path) -> str:
+    """The tracking URI in effect for a project rooted at ``root``."""
+    return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{(root / 'mlflow.db').resolve()}"
+
+
+def git_commit(root: Path) -> str:
+    """The current git commit of ``root``, or ``unknown`` outside a repository."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True, timeout=10
+        )
+        return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def flatten(params: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` for MLflow params."""
+    flat: dict[str, Any] = {}
+    for key, value in params.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict):
+            flat.update(flatten(value, f"{name}."))
+        else:
+            flat[name] = value
+    return flat
+
+
+def ensure_experiment(task: str, root: Path) -> str:
+    """The id of the task's experiment, created with an absolute artifact location if new."""
+    experiment = mlflow.get_experiment_by_name(task)
+    if experiment is not None:
+        return experiment.experiment_id
+    location = (root / "mlartifacts" / task).resolve().as_uri()
+    return mlflow.create_experiment(task, artifact_location=location)
+
+
+@contextmanager
+def stage_run(task: str, stage: str, phase: int, params: dict[str, Any], root: Path = Path(".")) -> Iterator[Any]:
+    """An MLflow run for one stage execution; FAILED if the body raises."""
+    root = root.resolve()
+    mlflow.set_tracking_uri(tracking_uri(root))
+    experiment_id = ensure_experiment(task, root)
+    tags = {"stage": stage, "phase": str(phase), "task": task, "git_commit": git_commit(root)}
+    if os.environ.get("DVC_EXP_NAME"):
+        tags["dvc_exp_name"] = os.environ["DVC_EXP_NAME"]
+    with mlflow.start_run(experiment_id=experiment_id, run_name=f"{stage}-phase{phase}", tags=tags) as run:
+        mlflow.log_params({k: str(v)[:500] for k, v in flatten(params).items()})
+        yield run
