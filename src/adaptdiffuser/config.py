@@ -31,8 +31,6 @@ class EnvParams:
     goal_radius: float = 0.5
     reset_pos_noise: float = 0.1
     reset_vel_noise: float = 0.1
-    tracking_p_gain: float = 1.0
-    tracking_d_gain: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -85,6 +83,8 @@ class PlannerParams:
     sampler: str = "ddim"
     sampler_steps: int = 16
     replan_every: int = 0
+    tracking_p_gain: float = 2.0
+    tracking_d_gain: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -161,7 +161,8 @@ def validate(p: Params) -> None:
         raise ConfigError(f"pretrain.ema_decay must be in [0, 1), got {p.pretrain.ema_decay}")
     if p.planner.sampler not in ("ddpm", "ddim"):
         raise ConfigError(f"planner.sampler must be 'ddpm' or 'ddim', got {p.planner.sampler!r}")
-    _positive(p, "planner.sampler_steps")
+    _positive(p, "planner.sampler_steps", "planner.tracking_p_gain")
+    _non_negative(p, "planner.tracking_d_gain")
     if p.planner.sampler_steps > p.diffusion.n_steps:
         raise ConfigError(
             f"planner.sampler_steps={p.planner.sampler_steps} exceeds diffusion.n_steps={p.diffusion.n_steps}"

@@ -7,8 +7,9 @@ from adaptdiffuser.envs.maze2d import Maze2D, resolve_layout
 
 
 def make_env(params: Params) -> Maze2D:
-    """A fresh simulator for the task in ``params`` (expert gains from ``expert``, protocol from ``env``)."""
-    e, x = params.env, params.expert
+    """A fresh simulator for the task in ``params``: protocol from ``env``, expert gains from ``expert``,
+    plan-follower gains from ``planner``."""
+    e, x, pl = params.env, params.expert, params.planner
     return Maze2D(
         resolve_layout(e.maze, e.layout),
         name=e.maze if e.layout is None else "custom",
@@ -20,6 +21,6 @@ def make_env(params: Params) -> Maze2D:
         expert_d_gain=x.d_gain,
         expert_jitter=x.jitter,
         expert_waypoint_radius=x.waypoint_radius,
-        tracking_p_gain=e.tracking_p_gain,
-        tracking_d_gain=e.tracking_d_gain,
+        tracking_p_gain=pl.tracking_p_gain,
+        tracking_d_gain=pl.tracking_d_gain,
     )

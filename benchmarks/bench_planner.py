@@ -1,0 +1,118 @@
+"""Speed figures for the current params.yaml profile, printed (never asserted).
+
+Prints: training steps per second, plan latency per decision (batch 1) for the full DDPM chain and the strided
+DDIM sampler, evaluation episodes per second (batched planning + simulation), and the profile's score as
+recorded by the last `dvc repro` in metrics/summary.json.
+
+    python benchmarks/bench_planner.py [--params params.yaml] [--device cpu] [--repeats 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from adaptdiffuser.checkpoint import load_bundle, make_bundle
+from adaptdiffuser.config import load_params
+from adaptdiffuser.data.normalizer import MinMaxNormalizer
+from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
+from adaptdiffuser.envs.factory import make_env
+from adaptdiffuser.evaluation import run_episodes
+from adaptdiffuser.planning import Planner, PlannerController
+from adaptdiffuser.stages.common import resolve_device
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--train-steps", type=int, default=30)
+    parser.add_argument("--episodes", type=int, default=10)
+    args = parser.parse_args()
+    params = load_params(args.params)
+    device = resolve_device(args.device)
+    env = make_env(params)
+    model_path = Path("models/phase0")
+    if model_path.exists():
+        bundle = load_bundle(model_path, device)
+        source = "trained models/phase0"
+    else:
+        dim = env.obs_dim + env.act_dim
+        normalizer = MinMaxNormalizer(-np.ones(dim) * 5, np.ones(dim) * 5)
+        bundle = make_bundle(params.model, params.diffusion, env.obs_dim, env.act_dim, normalizer)
+        source = "untrained model of the profile's shape"
+    print(f"device {device}, torch threads {torch.get_num_threads()}, {source}")
+    print(
+        f"model dim {params.model.dim} mults {params.model.dim_mults}, horizon {params.diffusion.horizon}, "
+        f"{sum(p.numel() for p in bundle.diffusion.parameters()) / 1e6:.2f} M parameters"
+    )
+
+    # training throughput
+    model = bundle.diffusion.to(device).train()
+    optimizer = torch.optim.Adam(model.parameters(), lr=params.pretrain.lr)
+    x = torch.rand(params.pretrain.batch_size, params.diffusion.horizon, model.transition_dim, device=device) * 2 - 1
+    cond = {0: x[:, 0, model.act_dim :], model.horizon - 1: x[:, -1, model.act_dim :]}
+    for i in range(args.train_steps + 5):
+        if i == 5:
+            _sync(device)
+            start = time.perf_counter()
+        loss = model.loss(x, cond)
+        loss.backward()
+        optimizer.step()
+        optimizer.zero_grad()
+    _sync(device)
+    rate = args.train_steps / (time.perf_counter() - start)
+    print(f"training: {rate:.1f} steps/s (batch {params.pretrain.batch_size})")
+
+    # plan latency per decision, batch 1
+    start_state = env.reset(np.random.default_rng(0))[None]
+    goal = env.goal_state()[None]
+    for name, sampler in [
+        (f"DDPM chain ({params.diffusion.n_steps} steps)", DDPMSampler()),
+        (f"DDIM strided ({params.planner.sampler_steps} steps)", DDIMSampler(params.planner.sampler_steps)),
+    ]:
+        planner = Planner(bundle, sampler, device)
+        planner.plan(start_state, goal, seed=0)
+        _sync(device)
+        start = time.perf_counter()
+        for r in range(args.repeats):
+            planner.plan(start_state, goal, seed=r)
+        _sync(device)
+        print(f"plan latency, {name}: {1000 * (time.perf_counter() - start) / args.repeats:.1f} ms per decision")
+
+    # evaluation throughput with the profile's planner
+    pl = params.planner
+    sampler = DDIMSampler(pl.sampler_steps) if pl.sampler == "ddim" else DDPMSampler()
+    controller = PlannerController(Planner(bundle, sampler, device), seed=0, replan_every=pl.replan_every)
+    start = time.perf_counter()
+    run_episodes(lambda: make_env(params), controller, args.episodes, 0, args.episodes, progress=False)
+    elapsed = time.perf_counter() - start
+    print(
+        f"evaluation: {args.episodes / elapsed:.2f} episodes/s "
+        f"({args.episodes} episodes of {env.episode_steps} steps, one batch, {pl.sampler}, replan {pl.replan_every})"
+    )
+
+    summary = Path("metrics/summary.json")
+    if summary.exists():
+        nav = json.loads(summary.read_text())["phase_0"]["navigation"]
+        print(
+            f"score (metrics/summary.json, phase 0): {nav['score_mean']:.1f} +- {nav['score_stderr']:.1f} "
+            f"over {nav['n_episodes']} episodes, success rate {nav['success_rate']:.2f}"
+        )
+    else:
+        print("score: run `dvc repro` first (metrics/summary.json not found)")
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+if __name__ == "__main__":
+    main()

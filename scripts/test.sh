@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# README command 2 (and CI): set up, lint, and run the whole test suite.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+# shellcheck disable=SC1091
+source .venv/bin/activate
+ruff check src pipeline tests benchmarks
+pytest -q "$@"
