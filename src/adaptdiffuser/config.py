@@ -31,6 +31,7 @@ class EnvParams:
     goal_radius: float = 0.5
     reset_pos_noise: float = 0.1
     reset_vel_noise: float = 0.1
+    random_goal: bool = False
 
 
 @dataclass(frozen=True)
@@ -232,6 +233,11 @@ def _coerce(value: Any, hint: Any, key: str) -> Any:
             raise ConfigError(f"{key} must be an integer, got {value!r}")
         return int(value)
     if hint is float:
+        if isinstance(value, str):  # YAML 1.1 reads "2e-4" (no dot) as a string
+            try:
+                value = float(value)
+            except ValueError:
+                raise ConfigError(f"{key} must be a number, got {value!r}") from None
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{key} must be a number, got {value!r}")
         return float(value)

@@ -68,7 +68,9 @@ def train(
         else:
             tqdm.write(f"ignoring resume state {resume_path}: it belongs to other params or data")
     act_dim, horizon = model.act_dim, model.horizon
-    bar = tqdm(range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress)
+    bar = tqdm(
+        range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress, mininterval=2.0
+    )
     running = []
     for step in bar:
         for _ in range(cfg.grad_accum):

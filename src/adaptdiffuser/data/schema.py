@@ -96,6 +96,8 @@ def write_trajectories(path: str | Path, traj: Trajectories) -> None:
         raise SchemaError(f"column 'observation' must have shape ({n}, {obs_dim}), got {traj.observation.shape}")
     if traj.action.shape != (n, act_dim):
         raise SchemaError(f"column 'action' must have shape ({n}, {act_dim}), got {traj.action.shape}")
+    if n and np.any(np.diff(traj.episode_id) < 0):
+        raise SchemaError("column 'episode_id' must be grouped in ascending order")
     schema = arrow_schema(obs_dim, act_dim)
     columns = [
         pa.array(traj.episode_id.astype(np.int64)),

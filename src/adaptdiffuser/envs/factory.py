@@ -17,6 +17,7 @@ def make_env(params: Params) -> Maze2D:
         goal_radius=e.goal_radius,
         reset_pos_noise=e.reset_pos_noise,
         reset_vel_noise=e.reset_vel_noise,
+        random_goal=e.random_goal,
         expert_p_gain=x.p_gain,
         expert_d_gain=x.d_gain,
         expert_jitter=x.jitter,

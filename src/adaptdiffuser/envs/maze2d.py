@@ -66,6 +66,7 @@ class Maze2D(PlanningEnv):
         goal_radius: float = 0.5,
         reset_pos_noise: float = 0.1,
         reset_vel_noise: float = 0.1,
+        random_goal: bool = False,
         expert_p_gain: float = 10.0,
         expert_d_gain: float = 1.0,
         expert_jitter: float = 0.2,
@@ -81,6 +82,7 @@ class Maze2D(PlanningEnv):
         self.goal_radius = goal_radius
         self.reset_pos_noise = reset_pos_noise
         self.reset_vel_noise = reset_vel_noise
+        self.random_goal = random_goal
         self.expert_p_gain = expert_p_gain
         self.expert_d_gain = expert_d_gain
         self.expert_jitter = expert_jitter
@@ -124,9 +126,13 @@ class Maze2D(PlanningEnv):
         return np.array([*self.goal_xy, 0.0, 0.0])
 
     def reset(self, rng: np.random.Generator, cell: Cell | None = None) -> np.ndarray:
+        """Protocol start in ``cell`` (random if None); with ``random_goal`` also a new goal cell elsewhere."""
         free = self.layout.free_cells
         if cell is None:
             cell = free[rng.integers(len(free))]
+        if self.random_goal:
+            others = [c for c in free if c != tuple(cell)]
+            self.set_goal(others[rng.integers(len(others))])
         pos = self.cell_to_xy(cell) + rng.uniform(-self.reset_pos_noise, self.reset_pos_noise, size=2)
         vel = rng.normal(0.0, self.reset_vel_noise, size=2)
         self._waypoints = []

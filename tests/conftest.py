@@ -1,0 +1,48 @@
+"""Small shared fixtures: a tiny model configuration and a real expert dataset collected in U-Maze."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from adaptdiffuser.config import DiffusionParams, ModelParams, Params
+from adaptdiffuser.data.collect import collect_expert_stream
+from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.envs.factory import make_env
+from adaptdiffuser.envs.maze2d import Maze2D
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # Tiny networks run fastest on one thread; extra intra-op threads only contend with other work on the machine.
+    torch.set_num_threads(1)
+
+
+@pytest.fixture
+def umaze() -> Maze2D:
+    """A fresh U-Maze simulator with the default params."""
+    return make_env(Params())
+
+
+@pytest.fixture(scope="session")
+def tiny_model_params() -> ModelParams:
+    return ModelParams(dim=8, dim_mults=[1, 2], kernel_size=5)
+
+
+@pytest.fixture(scope="session")
+def tiny_diffusion_params() -> DiffusionParams:
+    return DiffusionParams(horizon=16, n_steps=8)
+
+
+@pytest.fixture(scope="session")
+def expert_traj() -> Trajectories:
+    """About 3000 steps of the real waypoint expert in U-Maze, cut into episodes as the collect stage does."""
+    env = make_env(Params())
+    traj = collect_expert_stream(env, steps=3000, seed=0, progress=False)
+    traj.metadata = make_metadata("maze2d-umaze", env.obs_dim, env.act_dim, "expert", {"steps": 3000})
+    return traj
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)

@@ -1,0 +1,210 @@
+"""Model bundles on disk, and the training loop's resumable checkpoints on real expert data."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from adaptdiffuser.checkpoint import BUNDLE_FILES, ModelBundle, load_bundle, make_bundle, save_bundle
+from adaptdiffuser.config import DiffusionParams, ModelParams, PretrainParams
+from adaptdiffuser.data.normalizer import MinMaxNormalizer
+from adaptdiffuser.data.schema import Trajectories
+from adaptdiffuser.data.windows import WindowDataset, joint_array
+from adaptdiffuser.diffusion.samplers import DDIMSampler
+from adaptdiffuser.training import fingerprint, train
+
+CPU = torch.device("cpu")
+CFG = PretrainParams(
+    steps=30, batch_size=4, lr=1e-3, ema_every=5, ema_start=10, log_every=5, checkpoint_every=10, seed=3
+)
+
+
+class Interrupted(Exception):
+    """Stands in for the stage being killed part-way."""
+
+
+@pytest.fixture(scope="module")
+def normalizer(expert_traj: Trajectories) -> MinMaxNormalizer:
+    return MinMaxNormalizer.fit(joint_array(expert_traj))
+
+
+@pytest.fixture(scope="module")
+def dataset(expert_traj: Trajectories, normalizer: MinMaxNormalizer) -> WindowDataset:
+    return WindowDataset(expert_traj, 16, normalizer)
+
+
+@pytest.fixture
+def new_bundle(tiny_model_params: ModelParams, tiny_diffusion_params: DiffusionParams, normalizer: MinMaxNormalizer):
+    def build(seed: int = 0) -> ModelBundle:
+        torch.manual_seed(seed)
+        return make_bundle(tiny_model_params, tiny_diffusion_params, 4, 2, normalizer, task="maze2d-umaze", phase=0)
+
+    return build
+
+
+def weights(bundle: ModelBundle) -> dict[str, dict[str, torch.Tensor]]:
+    return {
+        "model": {k: v.clone() for k, v in bundle.diffusion.model.state_dict().items()},
+        "ema": {k: v.clone() for k, v in bundle.ema.model.state_dict().items()},
+    }
+
+
+def assert_same_weights(a: dict, b: dict) -> None:
+    for part in ("model", "ema"):
+        assert a[part].keys() == b[part].keys()
+        for key in a[part]:
+            assert torch.equal(a[part][key], b[part][key]), f"{part}.{key} differs"
+
+
+def test_dataset_from_expert_stream(expert_traj: Trajectories, dataset: WindowDataset) -> None:
+    assert len(expert_traj) == 3000 and len(expert_traj.episodes()) > 1
+    assert len(dataset) > 100 and dataset.act_dim == 2
+    batch = dataset.sample(8, np.random.default_rng(0))
+    assert batch.shape == (8, 16, 6) and batch.dtype == np.float32
+    assert batch.min() >= -1.0 - 1e-6 and batch.max() <= 1.0 + 1e-6
+    # windows never cross an episode boundary
+    ids = expert_traj.episode_id
+    assert all(ids[s] == ids[s + 15] for s in dataset.starts)
+
+
+def test_window_dataset_needs_long_enough_episodes(expert_traj: Trajectories, normalizer: MinMaxNormalizer) -> None:
+    with pytest.raises(ValueError, match="horizon=5000"):
+        WindowDataset(expert_traj, 5000, normalizer)
+
+
+def test_bundle_round_trip_gives_identical_outputs(tmp_path: Path, new_bundle) -> None:
+    bundle = new_bundle(0)
+    with torch.no_grad():  # make the EMA weights differ from the raw ones
+        for p in bundle.ema.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    save_bundle(tmp_path / "phase0", bundle)
+    assert sorted(p.name for p in (tmp_path / "phase0").iterdir()) == sorted(BUNDLE_FILES)
+
+    loaded = load_bundle(tmp_path / "phase0")
+    assert loaded.config == bundle.config and loaded.config["phase"] == 0
+    assert loaded.normalizer.state_dict() == bundle.normalizer.state_dict()
+    x = torch.randn(3, 16, 6)
+    t = torch.tensor([0, 4, 7])
+    with torch.no_grad():
+        assert torch.equal(loaded.ema.model(x, t), bundle.ema.model(x, t))
+        assert torch.equal(loaded.diffusion.model(x, t), bundle.diffusion.model(x, t))
+        assert not torch.allclose(loaded.ema.model(x, t), loaded.diffusion.model(x, t))
+    cond = {0: x[:, 0, 2:], 15: x[:, -1, 2:]}
+    sampler = DDIMSampler(4)
+    a = sampler.sample(loaded.ema.eval(), 3, cond, torch.Generator().manual_seed(1))
+    b = sampler.sample(bundle.ema.eval(), 3, cond, torch.Generator().manual_seed(1))
+    assert torch.equal(a, b)
+
+
+def test_save_bundle_replaces_existing_directory(tmp_path: Path, new_bundle) -> None:
+    out = tmp_path / "phase0"
+    save_bundle(out, new_bundle(0))
+    second = new_bundle(1)
+    save_bundle(out, second)
+    loaded = load_bundle(out)
+    for k, v in second.ema.model.state_dict().items():
+        assert torch.equal(loaded.ema.model.state_dict()[k], v)
+    assert [p.name for p in tmp_path.iterdir()] == ["phase0"]  # no temporary or old directories left
+
+
+def test_load_bundle_missing_ema_names_the_file(tmp_path: Path, new_bundle) -> None:
+    save_bundle(tmp_path / "phase0", new_bundle(0))
+    (tmp_path / "phase0" / "ema.pt").unlink()
+    with pytest.raises(FileNotFoundError, match="ema.pt"):
+        load_bundle(tmp_path / "phase0")
+    with pytest.raises(FileNotFoundError, match="model.pt"):
+        load_bundle(tmp_path / "never-trained")
+
+
+def test_train_reduces_loss_and_keeps_ema(dataset: WindowDataset, new_bundle) -> None:
+    bundle = new_bundle(0)
+    cfg = dataclasses.replace(CFG, steps=60, log_every=20)
+    history = train(bundle, dataset, cfg, CPU, progress=False)
+    assert [s for s, _ in history] == [20, 40, 60]
+    assert all(np.isfinite(loss) for _, loss in history)
+    assert history[-1][1] < history[0][1]
+    ema, raw = bundle.ema.model.state_dict(), bundle.diffusion.model.state_dict()
+    assert any(not torch.equal(ema[k], raw[k]) for k in raw)  # EMA lags the raw weights after ema_start
+
+
+def test_ema_is_a_copy_before_ema_start(dataset: WindowDataset, new_bundle) -> None:
+    bundle = new_bundle(0)
+    train(bundle, dataset, dataclasses.replace(CFG, steps=10, ema_start=100), CPU, progress=False)
+    ema, raw = bundle.ema.model.state_dict(), bundle.diffusion.model.state_dict()
+    assert all(torch.equal(ema[k], raw[k]) for k in raw)
+
+
+def test_resume_file_holds_the_last_checkpoint_before_the_end(
+    tmp_path: Path, dataset: WindowDataset, new_bundle
+) -> None:
+    resume = tmp_path / "resume.pt"
+    first = train(new_bundle(0), dataset, dataclasses.replace(CFG, steps=20), CPU, resume, "run", progress=False)
+    assert [s for s, _ in first] == [5, 10, 15, 20]
+    # checkpoints are written at multiples of checkpoint_every strictly before the end (the end is the bundle)
+    state = torch.load(resume, weights_only=False)
+    assert state["step"] == 10 and state["run_id"] == "run"
+    assert state["history"] == first[:2]
+
+    # a longer run with the same run_id continues from that checkpoint
+    logged: list[int] = []
+    second = train(
+        new_bundle(7), dataset, CFG, CPU, resume, "run", on_log=lambda s, _: logged.append(s), progress=False
+    )
+    assert logged == [15, 20, 25, 30]
+    assert second[:4] == first  # restored entries, then the same steps 11-20 recomputed exactly
+    assert [s for s, _ in second] == [5, 10, 15, 20, 25, 30]
+    assert torch.load(resume, weights_only=False)["step"] == 20
+
+
+def test_killed_and_resumed_training_matches_straight_training(
+    tmp_path: Path, dataset: WindowDataset, new_bundle
+) -> None:
+    straight_bundle = new_bundle(0)
+    straight = train(straight_bundle, dataset, CFG, CPU, progress=False)
+    assert [s for s, _ in straight] == [5, 10, 15, 20, 25, 30]
+
+    resume = tmp_path / "resume.pt"
+    run_id = fingerprint({"cfg": dataclasses.asdict(CFG)})
+
+    def kill_at_25(step: int, loss: float) -> None:
+        if step == 25:
+            raise Interrupted
+
+    with pytest.raises(Interrupted):
+        train(new_bundle(0), dataset, CFG, CPU, resume, run_id, on_log=kill_at_25, progress=False)
+    assert torch.load(resume, weights_only=False)["step"] == 20
+
+    # a new process: differently initialised weights, which the resume state must overwrite
+    resumed_bundle = new_bundle(123)
+    logged: list[int] = []
+    resumed = train(
+        resumed_bundle, dataset, CFG, CPU, resume, run_id, on_log=lambda s, _: logged.append(s), progress=False
+    )
+    assert logged == [25, 30]  # it started after step 20
+    assert resumed == straight
+    assert_same_weights(weights(resumed_bundle), weights(straight_bundle))
+
+
+def test_resume_state_of_another_run_is_ignored(tmp_path: Path, dataset: WindowDataset, new_bundle) -> None:
+    resume = tmp_path / "resume.pt"
+    cfg = dataclasses.replace(CFG, steps=20)
+    train(new_bundle(5), dataset, cfg, CPU, resume, run_id="old-params", progress=False)
+    assert resume.exists()
+
+    logged: list[int] = []
+    bundle = new_bundle(0)
+    train(bundle, dataset, cfg, CPU, resume, run_id="new-params", on_log=lambda s, _: logged.append(s), progress=False)
+    assert logged == [5, 10, 15, 20]  # trained from scratch
+    fresh = new_bundle(0)
+    train(fresh, dataset, cfg, CPU, progress=False)
+    assert_same_weights(weights(bundle), weights(fresh))
+
+
+def test_fingerprint() -> None:
+    assert fingerprint({"a": 1, "b": [1, 2]}) == fingerprint({"b": [1, 2], "a": 1})
+    assert fingerprint({"a": 1}) != fingerprint({"a": 2})
+    assert len(fingerprint("x")) == 16

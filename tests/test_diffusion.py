@@ -1,0 +1,163 @@
+"""Gaussian diffusion: the schedule, the loss, inpainting, both samplers and a short real training run."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from adaptdiffuser.diffusion.conditions import apply_inpainting
+from adaptdiffuser.diffusion.gaussian import GaussianDiffusion, cosine_betas
+from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler, Sampler, make_sampler
+from adaptdiffuser.models.unet import TemporalUnet
+
+OBS, ACT, H = 4, 2, 16
+
+
+def tiny_diffusion(n_steps: int = 8, seed: int = 0, **kwargs) -> GaussianDiffusion:
+    torch.manual_seed(seed)
+    return GaussianDiffusion(
+        TemporalUnet(OBS + ACT, dim=8, dim_mults=(1, 2)), horizon=H, obs_dim=OBS, act_dim=ACT, n_steps=n_steps, **kwargs
+    )
+
+
+def straight_lines(batch: int, seed: int = 0) -> torch.Tensor:
+    """Normalized [action, x, y, vx, vy] rows of constant-velocity straight lines between random points."""
+    g = torch.Generator().manual_seed(seed)
+    a = torch.rand(batch, 2, generator=g) * 1.6 - 0.8
+    b = torch.rand(batch, 2, generator=g) * 1.6 - 0.8
+    s = torch.linspace(0, 1, H)[None, :, None]
+    pos = a[:, None, :] + s * (b - a)[:, None, :]
+    vel = ((b - a) / 2)[:, None, :].expand(-1, H, -1)
+    act = torch.zeros(batch, H, ACT)
+    return torch.cat([act, pos, vel], dim=-1)
+
+
+@pytest.mark.parametrize("n_steps", [8, 64, 256])
+def test_cosine_betas(n_steps: int) -> None:
+    betas = cosine_betas(n_steps)
+    assert betas.shape == (n_steps,)
+    assert (betas > 0).all() and (betas <= 0.999).all()
+    assert betas[-1] == pytest.approx(0.999)  # the last step is clipped
+    assert (betas[1:] >= betas[:-1]).all()
+    alphas_cumprod = torch.cumprod(1 - betas, dim=0)
+    assert (alphas_cumprod[1:] < alphas_cumprod[:-1]).all()
+    assert 0 < alphas_cumprod[-1] < 0.01 and alphas_cumprod[0] > 0.95
+
+
+def test_diffusion_buffers_and_forward_noising() -> None:
+    diff = tiny_diffusion()
+    ab = diff.alphas_cumprod
+    assert (ab[1:] < ab[:-1]).all()
+    assert diff.posterior_variance[0] == 0 and (diff.posterior_variance[1:] > 0).all()
+    x0 = straight_lines(3)
+    noise = torch.randn_like(x0)
+    t = torch.tensor([0, 3, 7])
+    xt = diff.q_sample(x0, t, noise)
+    for i in range(3):
+        expected = ab[t[i]].sqrt() * x0[i] + (1 - ab[t[i]]).sqrt() * noise[i]
+        torch.testing.assert_close(xt[i], expected)
+    # the posterior of x0 itself at t = 0 is x0
+    mean, _ = diff.posterior(x0, xt, torch.zeros(3, dtype=torch.long))
+    torch.testing.assert_close(mean, x0)
+
+
+@pytest.mark.parametrize("predict_epsilon", [False, True])
+def test_loss_is_finite_positive_scalar_and_gradients_flow(predict_epsilon: bool) -> None:
+    diff = tiny_diffusion(predict_epsilon=predict_epsilon)
+    x0 = straight_lines(4)
+    cond = {0: x0[:, 0, ACT:], H - 1: x0[:, -1, ACT:]}
+    loss = diff.loss(x0, cond, generator=torch.Generator().manual_seed(0))
+    assert loss.dim() == 0 and torch.isfinite(loss) and loss.item() > 0
+    loss.backward()
+    grads = [p.grad for p in diff.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert sum(g.abs().sum().item() for g in grads) > 0
+    # the same generator seed gives the same loss
+    again = diff.loss(x0, cond, generator=torch.Generator().manual_seed(0))
+    assert again.item() == pytest.approx(loss.item(), rel=1e-6)
+
+
+def test_apply_inpainting_overwrites_only_conditioned_states() -> None:
+    x = torch.randn(3, H, OBS + ACT)
+    original = x.clone()
+    start, goal = torch.randn(3, OBS), torch.randn(3, OBS)
+    out = apply_inpainting(x, {0: start, H - 1: goal, 5: start * 2}, ACT)
+
+    torch.testing.assert_close(x, original, rtol=0, atol=0)  # input untouched
+    assert torch.equal(out[:, 0, ACT:], start)
+    assert torch.equal(out[:, H - 1, ACT:], goal)
+    assert torch.equal(out[:, 5, ACT:], start * 2)
+    assert torch.equal(out[:, [0, 5, H - 1], :ACT], original[:, [0, 5, H - 1], :ACT])  # actions kept
+    other = [t for t in range(H) if t not in (0, 5, H - 1)]
+    assert torch.equal(out[:, other], original[:, other])
+    assert torch.equal(apply_inpainting(x, {}, ACT), original)
+
+
+SAMPLERS = {"ddpm": lambda: make_sampler("ddpm", 4), "ddim": lambda: make_sampler("ddim", 4)}
+
+
+@pytest.mark.parametrize("kind", sorted(SAMPLERS))
+def test_sampler_shape_conditions_and_determinism(kind: str) -> None:
+    diff = tiny_diffusion().eval()
+    sampler: Sampler = SAMPLERS[kind]()
+    start = torch.rand(5, OBS) * 2 - 1
+    goal = torch.rand(5, OBS) * 2 - 1
+    cond = {0: start, H - 1: goal}
+
+    def draw(seed: int) -> torch.Tensor:
+        return sampler.sample(diff, 5, cond, torch.Generator().manual_seed(seed))
+
+    x = draw(0)
+    assert x.shape == (5, H, OBS + ACT)
+    assert torch.isfinite(x).all()
+    assert torch.equal(x[:, 0, ACT:], start)
+    assert torch.equal(x[:, H - 1, ACT:], goal)
+    assert torch.equal(draw(0), x)
+    assert not torch.allclose(draw(1), x)
+    assert not x.requires_grad
+
+
+def test_make_sampler_kinds() -> None:
+    assert isinstance(make_sampler("ddpm", 4), DDPMSampler)
+    ddim = make_sampler("ddim", 7)
+    assert isinstance(ddim, DDIMSampler) and ddim.n_steps == 7
+    with pytest.raises(ValueError, match="bogus"):
+        make_sampler("bogus", 4)
+    with pytest.raises(ValueError):
+        DDIMSampler(0)
+
+
+@pytest.mark.parametrize(("n_steps", "k"), [(8, 2), (8, 3), (8, 8), (64, 4), (64, 16), (64, 63), (256, 16)])
+def test_ddim_timesteps(n_steps: int, k: int) -> None:
+    steps = DDIMSampler(k).timesteps(tiny_diffusion(n_steps))
+    assert len(steps) == k and len(set(steps)) == k
+    assert steps[0] == n_steps - 1 and steps[-1] == 0
+    assert all(a > b for a, b in zip(steps, steps[1:], strict=False))
+
+
+def test_ddim_with_more_steps_than_diffusion_visits_every_step() -> None:
+    diff = tiny_diffusion(8)
+    assert DDIMSampler(100).timesteps(diff) == list(range(7, -1, -1))
+    assert DDPMSampler().timesteps(diff) == list(range(7, -1, -1))
+
+
+def test_short_training_reduces_loss() -> None:
+    diff = tiny_diffusion(8)
+    x0 = straight_lines(16)
+    cond = {0: x0[:, 0, ACT:], H - 1: x0[:, -1, ACT:]}
+
+    def eval_loss() -> float:
+        g = torch.Generator().manual_seed(123)
+        with torch.no_grad():
+            return sum(diff.loss(x0, cond, generator=g).item() for _ in range(8)) / 8
+
+    before = eval_loss()
+    opt = torch.optim.Adam(diff.parameters(), lr=1e-3)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(150):
+        loss = diff.loss(x0, cond, generator=g)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    after = eval_loss()
+    assert after < before / 3, (before, after)
