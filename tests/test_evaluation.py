@@ -73,6 +73,8 @@ def test_run_episodes_random_and_expert() -> None:
         np.testing.assert_array_equal(x, y)
     assert len({tuple(s) for s in expert_a.starts}) == 4
 
+    for goal in expert_a.goals:  # the fixed evaluation goal, U-Maze cell (1, 1), with zero velocity
+        np.testing.assert_array_equal(goal, [-1.0, 1.0, 0.0, 0.0])
     assert all(expert_a.final_success) and min(expert_a.first_goal_step) >= 0
     assert np.mean(expert_a.returns) > 150.0
     assert np.mean(expert_a.returns) > np.mean(random_a.returns) + 100.0

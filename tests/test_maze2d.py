@@ -270,3 +270,10 @@ def test_random_goal_variant_draws_reproducible_goals_away_from_the_start() -> N
         env.reset(np.random.default_rng(seed))
         assert env.goal_cell == goals[-1]
     assert len(set(goals)) > 1
+
+
+def test_draw_uses_the_episode_goal_when_given(umaze: Maze2D) -> None:
+    ax = Figure().add_subplot()
+    umaze.draw(ax, goal=np.array([1.0, -1.0, 0.0, 0.0]))
+    goal_disc = ax.patches[-1]
+    assert tuple(goal_disc.center) == (1.0, -1.0)

@@ -71,6 +71,7 @@ class EpisodeBatchResult:
     final_success: list[bool] = field(default_factory=list)
     first_goal_step: list[int] = field(default_factory=list)
     starts: list[np.ndarray] = field(default_factory=list)
+    goals: list[np.ndarray] = field(default_factory=list)
     executed: list[np.ndarray] = field(default_factory=list)
     plans: list[np.ndarray | None] = field(default_factory=list)
 
@@ -110,6 +111,7 @@ def run_episodes(
             result.final_success.append(bool(rewards[-1, i] > 0))
             result.first_goal_step.append(int(hits[0]) if len(hits) else -1)
             result.starts.append(trace[0, i])
+            result.goals.append(batch_envs[i].goal_state())
             result.executed.append(trace[:, i])
             result.plans.append(None if plans is None else plans[i])
         bar.update(len(episodes))

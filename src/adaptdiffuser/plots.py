@@ -15,11 +15,16 @@ from adaptdiffuser.io import atomic_path  # noqa: E402
 
 
 def save_plan_picture(
-    env: PlanningEnv, path: str | Path, plan: np.ndarray | None, executed: np.ndarray | None, title: str
+    env: PlanningEnv,
+    path: str | Path,
+    plan: np.ndarray | None,
+    executed: np.ndarray | None,
+    title: str,
+    goal: np.ndarray | None = None,
 ) -> None:
     """One PNG: the task, the planned states and the executed states."""
     fig, ax = plt.subplots(figsize=(4, 4))
-    env.draw(ax, plan=plan, executed=executed)
+    env.draw(ax, plan=plan, executed=executed, goal=goal)
     ax.set_title(title, fontsize=9)
     ax.legend(loc="lower right", fontsize=6)
     with atomic_path(path) as tmp:

@@ -36,6 +36,14 @@ class PlanningEnv(ABC):
         """The evaluation protocol's reward for being at ``obs``."""
 
     @abstractmethod
+    def goal_state(self) -> np.ndarray:
+        """The state the planner is conditioned to end in for the current task."""
+
+    @abstractmethod
+    def seed_expert(self, seed: int) -> None:
+        """Seed the expert's own randomness (for reproducible reference returns and data)."""
+
+    @abstractmethod
     def expert_action(self, obs: np.ndarray) -> np.ndarray:
         """The scripted expert's action towards the current goal."""
 
@@ -44,5 +52,12 @@ class PlanningEnv(ABC):
         """The action that moves from ``obs`` towards the planned next state ``target``."""
 
     @abstractmethod
-    def draw(self, ax, plan: np.ndarray | None = None, executed: np.ndarray | None = None) -> None:
-        """Draw the task (and optionally a planned and an executed state sequence) on a matplotlib axis."""
+    def draw(
+        self,
+        ax,
+        plan: np.ndarray | None = None,
+        executed: np.ndarray | None = None,
+        goal: np.ndarray | None = None,
+    ) -> None:
+        """Draw the task (optionally a planned and an executed state sequence, and the episode's goal state
+        if it differs from the current one) on a matplotlib axis."""

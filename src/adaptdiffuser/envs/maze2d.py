@@ -185,7 +185,13 @@ class Maze2D(PlanningEnv):
         return np.clip(action, -1.0, 1.0)
 
     # -- picture ----------------------------------------------------------------------------------------------
-    def draw(self, ax, plan: np.ndarray | None = None, executed: np.ndarray | None = None) -> None:
+    def draw(
+        self,
+        ax,
+        plan: np.ndarray | None = None,
+        executed: np.ndarray | None = None,
+        goal: np.ndarray | None = None,
+    ) -> None:
         from matplotlib.patches import Circle, Rectangle
 
         for r in range(self.layout.height):
@@ -199,7 +205,8 @@ class Maze2D(PlanningEnv):
         if executed is not None:
             ax.plot(executed[:, 0], executed[:, 1], "-", color="tab:orange", lw=1.5, label="executed")
             ax.plot(*executed[0, :2], "o", color="tab:green", ms=8, label="start")
-        ax.add_patch(Circle(tuple(self.goal_xy), self.goal_radius, color="tab:red", alpha=0.3, label="goal"))
+        goal_xy = self.goal_xy if goal is None else np.asarray(goal)[:2]
+        ax.add_patch(Circle(tuple(goal_xy), self.goal_radius, color="tab:red", alpha=0.3, label="goal"))
         ax.set_xlim(-self.layout.width / 2, self.layout.width / 2)
         ax.set_ylim(-self.layout.height / 2, self.layout.height / 2)
         ax.set_aspect("equal")

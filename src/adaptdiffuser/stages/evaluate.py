@@ -31,7 +31,12 @@ def run_evaluate(params: Params, root: Path, phase: int, device: torch.device, p
         params.task,
         "evaluate",
         phase,
-        {"planner": params.section("planner"), "evaluate": params.section("evaluate")},
+        {
+            "env": params.section("env"),
+            "planner": params.section("planner"),
+            "evaluate": params.section("evaluate"),
+            "model": {"path": str(model_dir(phase)), "data": bundle.config.get("data", {})},
+        },
         root,
     ):
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
@@ -52,6 +57,8 @@ def run_evaluate(params: Params, root: Path, phase: int, device: torch.device, p
                 "episode": result.episodes,
                 "start_x": [s[0] for s in result.starts],
                 "start_y": [s[1] for s in result.starts],
+                "goal_x": [g[0] for g in result.goals],
+                "goal_y": [g[1] for g in result.goals],
                 "return": result.returns,
                 "score": scores,
                 "final_success": result.final_success,
@@ -72,6 +79,7 @@ def run_evaluate(params: Params, root: Path, phase: int, device: torch.device, p
                 result.plans[i],
                 result.executed[i],
                 f"phase {phase}, episode {i}: return {result.returns[i]:.0f}, score {scores[i]:.0f}",
+                goal=result.goals[i],
             )
             mlflow.log_artifact(str(picture), artifact_path="plans")
         write_json(root / phase_metrics_path(phase), {"navigation": navigation})
