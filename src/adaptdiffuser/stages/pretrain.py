@@ -43,7 +43,7 @@ def run_pretrain(params: Params, root: Path, device: torch.device, progress: boo
             task=params.task,
             phase=0,
             pretrain=asdict(params.pretrain),
-            data={"path": str(EXPERT_DATA), "sha256": digest},
+            data=logged["data"],
         )
         dataset = WindowDataset(traj, params.diffusion.horizon, normalizer)
         mlflow.log_metrics(
@@ -65,7 +65,6 @@ def run_pretrain(params: Params, root: Path, device: torch.device, progress: boo
         save_bundle(out, bundle)
         curve = out / "train_loss.png"
         save_loss_curve(history, curve)
-        mlflow.log_artifacts(str(out), artifact_path="checkpoint")
-        mlflow.log_artifact(str(curve))
+        mlflow.log_artifacts(str(out), artifact_path="checkpoint")  # weights, config and the loss curve
         resume.unlink(missing_ok=True)
     return out
