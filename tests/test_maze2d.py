@@ -277,3 +277,10 @@ def test_draw_uses_the_episode_goal_when_given(umaze: Maze2D) -> None:
     umaze.draw(ax, goal=np.array([1.0, -1.0, 0.0, 0.0]))
     goal_disc = ax.patches[-1]
     assert tuple(goal_disc.center) == (1.0, -1.0)
+
+
+def test_set_goal_state_accepts_free_positions_and_rejects_walls(umaze: Maze2D) -> None:
+    umaze.set_goal_state(np.array([0.8, -1.2, 0.0, 0.0]))
+    assert umaze.goal_cell == (3, 3) and umaze.reward(np.array([0.8, -1.2, 0, 0])) == 1.0
+    with pytest.raises(ValueError, match="wall"):
+        umaze.set_goal_state(np.array([-1.0, 0.0, 0.0, 0.0]))

@@ -40,6 +40,14 @@ class PlanningEnv(ABC):
         """The state the planner is conditioned to end in for the current task."""
 
     @abstractmethod
+    def set_goal_state(self, goal: np.ndarray) -> None:
+        """Make ``goal`` (a state, as :meth:`goal_state` returns) the current task's goal."""
+
+    def tracking_error(self, executed: np.ndarray, planned: np.ndarray) -> float:
+        """How far an executed state is from the planned one (full-state L2 unless an env says otherwise)."""
+        return float(np.linalg.norm(np.asarray(executed) - np.asarray(planned)))
+
+    @abstractmethod
     def seed_expert(self, seed: int) -> None:
         """Seed the expert's own randomness (for reproducible reference returns and data)."""
 

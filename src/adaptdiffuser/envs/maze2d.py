@@ -121,6 +121,20 @@ class Maze2D(PlanningEnv):
         self.goal_xy = self.cell_to_xy(self.goal_cell)
         self._waypoints = []
 
+    def set_goal_state(self, goal: np.ndarray) -> None:
+        """Make the position of ``goal`` the goal (need not be a cell centre); the expert re-plans towards it."""
+        xy = np.asarray(goal, dtype=np.float64)[:2]
+        cell = self.xy_to_cell(xy)
+        if not self.layout.is_free(*cell):
+            raise ValueError(f"goal position {xy.tolist()} lies in a wall (cell {cell})")
+        self.goal_cell = cell
+        self.goal_xy = xy.copy()
+        self._waypoints = []
+
+    def tracking_error(self, executed: np.ndarray, planned: np.ndarray) -> float:
+        """Position distance: planned velocities are noisy, positions are what the task is about."""
+        return float(np.linalg.norm(np.asarray(executed)[:2] - np.asarray(planned)[:2]))
+
     def goal_state(self) -> np.ndarray:
         """The planner's goal condition: goal position with zero velocity."""
         return np.array([*self.goal_xy, 0.0, 0.0])

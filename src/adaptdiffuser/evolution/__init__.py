@@ -1,0 +1,1 @@
+"""Self-evolution building blocks: synthetic tasks, generation, and the rule-based discriminator."""

@@ -1,0 +1,111 @@
+"""The rule-based discriminator (paper section 4.2): track each generated state sequence in the real
+simulator, reject plans the dynamics cannot follow, score the executed trajectories and select.
+
+What is kept is the *executed* trajectory (real states and actions), never the raw plan.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from adaptdiffuser.envs.base import PlanningEnv
+
+
+@dataclass
+class TrackedTrajectory:
+    """A plan executed by the tracking controller: real observations ``[H, obs]`` and actions ``[H - 1, act]``,
+    the per-step tracking error, the protocol reward of each executed step and the first step at the goal."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    errors: np.ndarray
+    rewards: np.ndarray
+    steps_to_goal: int
+
+    @property
+    def max_error(self) -> float:
+        return float(self.errors.max()) if len(self.errors) else 0.0
+
+    @property
+    def mean_error(self) -> float:
+        return float(self.errors.mean()) if len(self.errors) else 0.0
+
+    @property
+    def total_reward(self) -> float:
+        return float(self.rewards.sum())
+
+
+def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | None = None) -> TrackedTrajectory:
+    """Start the simulator at ``planned_states[0]`` and follow ``planned_states[t + 1]`` with the environment's
+    tracking controller; the error at step t is :meth:`PlanningEnv.tracking_error` of the executed and planned
+    next states. Rewards are measured against ``goal`` when given (the task's goal), else the env's goal."""
+    if goal is not None:
+        env.set_goal_state(goal)
+    obs = env.set_state(planned_states[0])
+    observations = [obs]
+    actions, errors, rewards = [], [], []
+    for target in planned_states[1:]:
+        action = env.tracking_action(obs, target)
+        obs = env.step(action)
+        observations.append(obs)
+        actions.append(action)
+        errors.append(env.tracking_error(obs, target))
+        rewards.append(env.reward(obs))
+    rewards_arr = np.asarray(rewards, dtype=np.float64)
+    hits = np.flatnonzero(rewards_arr > 0)
+    return TrackedTrajectory(
+        observations=np.asarray(observations),
+        actions=np.asarray(actions).reshape(len(actions), env.act_dim),
+        errors=np.asarray(errors, dtype=np.float64),
+        rewards=rewards_arr,
+        steps_to_goal=int(hits[0]) + 1 if len(hits) else -1,
+    )
+
+
+def passes_tracking(tracked: TrackedTrajectory, threshold: float) -> bool:
+    """Dynamics consistency: every executed state stays within ``threshold`` of the planned one."""
+    return tracked.max_error <= threshold
+
+
+@dataclass(frozen=True)
+class PaperMazeRule:
+    """The paper's Maze2D reward/length rule (appendix "Metric Values for Reward Discriminator"): keep when
+    ``L > long_length`` or (``L > min_length`` and ``R + (episode_steps - L) > min_score``)."""
+
+    episode_steps: int
+    long_length: int
+    min_length: int
+    min_score: float
+
+    def keeps(self, reward: float, length: int) -> bool:
+        if length > self.long_length:
+            return True
+        return length > self.min_length and reward + (self.episode_steps - length) > self.min_score
+
+
+# The appendix's thresholds per maze (U-Maze / Medium / Large).
+PAPER_MAZE_RULES = {
+    "umaze": PaperMazeRule(300, 200, 50, 210.0),
+    "medium": PaperMazeRule(600, 450, 200, 400.0),
+    "large": PaperMazeRule(800, 650, 270, 400.0),
+}
+
+
+def select_by_quantile(scores: np.ndarray, quantile: float) -> np.ndarray:
+    """Indices of scores at or above the ``quantile``; never empty for a non-empty input (the best is kept)."""
+    if not 0.0 <= quantile <= 1.0:
+        raise ValueError(f"quantile must be in [0, 1], got {quantile}")
+    scores = np.asarray(scores, dtype=np.float64)
+    if scores.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    keep = np.flatnonzero(scores >= np.quantile(scores, quantile))
+    return keep if keep.size else np.array([int(np.argmax(scores))])
+
+
+def select_top_k(scores: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the ``k`` best scores (all of them if fewer), best first; at least one when non-empty."""
+    if k <= 0:
+        raise ValueError(f"k must be positive, got {k}")
+    return np.argsort(-np.asarray(scores, dtype=np.float64), kind="stable")[:k]

@@ -1,0 +1,45 @@
+"""Synthetic navigation tasks: random start and goal cells, with random positions inside the start cell."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from adaptdiffuser.envs.maze2d import Maze2D
+
+
+@dataclass
+class NavigationTasks:
+    """``n`` start states and goal states (goal velocity zero), and the cells they were drawn from."""
+
+    starts: np.ndarray
+    goals: np.ndarray
+    start_cells: np.ndarray
+    goal_cells: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.starts)
+
+
+def sample_navigation_tasks(env: Maze2D, n: int, rng: np.random.Generator, cell_spread: float = 0.4) -> NavigationTasks:
+    """Draw ``n`` tasks: distinct random start and goal cells; the start is placed uniformly within
+    ``cell_spread`` of its cell centre with a small random velocity, the goal at its cell centre."""
+    if n <= 0:
+        raise ValueError(f"number of tasks must be positive, got {n}")
+    free = env.layout.free_cells
+    start_idx = rng.integers(len(free), size=n)
+    goal_idx = (start_idx + rng.integers(1, len(free), size=n)) % len(free)  # never the start cell
+    start_cells = np.array([free[i] for i in start_idx])
+    goal_cells = np.array([free[i] for i in goal_idx])
+    start_xy = np.stack([env.cell_to_xy(tuple(c)) for c in start_cells]) + rng.uniform(
+        -cell_spread, cell_spread, size=(n, 2)
+    )
+    start_v = rng.normal(0.0, env.reset_vel_noise, size=(n, 2))
+    goal_xy = np.stack([env.cell_to_xy(tuple(c)) for c in goal_cells])
+    return NavigationTasks(
+        starts=np.concatenate([start_xy, start_v], axis=1),
+        goals=np.concatenate([goal_xy, np.zeros((n, 2))], axis=1),
+        start_cells=start_cells,
+        goal_cells=goal_cells,
+    )

@@ -1,0 +1,144 @@
+"""Evolution building blocks: tasks, generation, tracking in the real simulator, the paper's rule, selection."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from adaptdiffuser.checkpoint import make_bundle
+from adaptdiffuser.config import DiffusionParams, ModelParams, Params
+from adaptdiffuser.data.normalizer import MinMaxNormalizer
+from adaptdiffuser.data.schema import read_trajectories, write_trajectories
+from adaptdiffuser.diffusion.samplers import DDIMSampler
+from adaptdiffuser.envs.factory import make_env
+from adaptdiffuser.evolution.discriminator import (
+    PAPER_MAZE_RULES,
+    passes_tracking,
+    select_by_quantile,
+    select_top_k,
+    track_plan,
+)
+from adaptdiffuser.evolution.generate import generate_plans, synthetic_trajectories
+from adaptdiffuser.evolution.tasks import sample_navigation_tasks
+from adaptdiffuser.planning import Planner
+
+THRESHOLD = 0.3
+
+
+def expert_states(steps: int, start_cell: tuple[int, int], goal_cell: tuple[int, int]) -> np.ndarray:
+    """A dynamically feasible state sequence: the expert driving from one U-Maze cell to another."""
+    env = make_env(Params())
+    env.set_goal(goal_cell)
+    obs = env.reset(np.random.default_rng(0), cell=start_cell)
+    states = [obs]
+    for _ in range(steps - 1):
+        obs = env.step(env.expert_action(obs))
+        states.append(obs)
+    return np.asarray(states)
+
+
+def test_a_plan_through_a_wall_is_rejected() -> None:
+    env = make_env(Params())
+    # straight down from cell (1, 1) to cell (3, 1) of U-Maze, through the wall cell (2, 1)
+    y = np.linspace(1.0, -1.0, 64)
+    vy = np.gradient(y) / 0.01
+    plan = np.stack([np.full(64, -1.0), y, np.zeros(64), vy], axis=1)
+    assert any(env.in_wall(p[:2]) for p in plan)
+    tracked = track_plan(env, plan)
+    assert not passes_tracking(tracked, THRESHOLD)
+    assert tracked.max_error > 0.5
+    # the executed states never enter the wall: what would be kept is physically real
+    assert not any(env.in_wall(o[:2]) for o in tracked.observations)
+
+
+def test_a_plan_the_controller_can_follow_is_kept_with_its_real_states_and_actions() -> None:
+    env = make_env(Params())
+    plan = expert_states(128, start_cell=(3, 1), goal_cell=(1, 3))
+    tracked = track_plan(env, plan, goal=np.array([*env.cell_to_xy((1, 3)), 0.0, 0.0]))
+    assert passes_tracking(tracked, THRESHOLD), tracked.max_error
+    assert tracked.observations.shape == (128, 4) and tracked.actions.shape == (127, 2)
+    assert np.all(np.abs(tracked.actions) <= 1.0)
+    # the rewards are measured against the task's goal, not the evaluation goal
+    assert tracked.total_reward > 0 and tracked.steps_to_goal > 0
+    np.testing.assert_array_equal(env.goal_xy, env.cell_to_xy((1, 3)))
+    # replaying the kept actions from the first state reproduces the kept states exactly
+    obs = env.set_state(tracked.observations[0])
+    for action, expected in zip(tracked.actions, tracked.observations[1:], strict=True):
+        obs = env.step(action)
+        np.testing.assert_allclose(obs, expected)
+
+
+def test_paper_rule_follows_the_appendix() -> None:
+    rule = PAPER_MAZE_RULES["umaze"]
+    assert rule.keeps(reward=0.0, length=201)  # long trajectories are kept
+    assert not rule.keeps(reward=300.0, length=50)  # too short
+    assert rule.keeps(reward=100.0, length=150)  # 100 + 150 > 210
+    assert not rule.keeps(reward=50.0, length=150)  # 50 + 150 <= 210
+    assert PAPER_MAZE_RULES["medium"].keeps(reward=300.0, length=300)  # 300 + 300 > 400
+    assert not PAPER_MAZE_RULES["large"].keeps(reward=0.0, length=600)  # 0 + 200 <= 400
+
+
+@pytest.mark.parametrize("quantile", [0.0, 0.5, 0.9, 1.0])
+def test_quantile_selection_is_never_empty(quantile: float) -> None:
+    rng = np.random.default_rng(0)
+    for n in (1, 2, 7, 100):
+        for scores in (rng.normal(size=n), np.zeros(n), np.full(n, -5.0), rng.integers(0, 3, size=n)):
+            keep = select_by_quantile(scores, quantile)
+            assert keep.size >= 1
+            assert scores[keep].min() >= np.quantile(scores, quantile) - 1e-12
+            assert np.argmax(scores) in keep or scores[keep].max() == scores.max()
+    assert select_by_quantile(np.zeros(0), 0.5).size == 0
+    with pytest.raises(ValueError, match="quantile"):
+        select_by_quantile(np.ones(3), 1.5)
+
+
+def test_top_k_selection() -> None:
+    scores = np.array([0.1, 3.0, -1.0, 2.0])
+    assert select_top_k(scores, 2).tolist() == [1, 3]
+    assert select_top_k(scores, 10).tolist() == [1, 3, 0, 2]
+    with pytest.raises(ValueError, match="k must be positive"):
+        select_top_k(scores, 0)
+
+
+def test_sampled_tasks_use_distinct_free_cells_and_are_reproducible() -> None:
+    env = make_env(Params())
+    a = sample_navigation_tasks(env, 50, np.random.default_rng(3))
+    b = sample_navigation_tasks(env, 50, np.random.default_rng(3))
+    np.testing.assert_array_equal(a.starts, b.starts)
+    assert len(a) == 50 and a.starts.shape == (50, 4) and a.goals.shape == (50, 4)
+    assert np.all(np.any(a.start_cells != a.goal_cells, axis=1))
+    for start, cell in zip(a.starts, a.start_cells, strict=True):
+        assert env.xy_to_cell(start[:2]) == tuple(cell)
+    np.testing.assert_array_equal(a.goals[:, 2:], 0.0)
+    assert len({tuple(c) for c in a.goal_cells}) > 3
+
+
+def test_generated_plans_hit_their_tasks_and_kept_data_round_trips(tmp_path: Path) -> None:
+    env = make_env(Params())
+    torch.manual_seed(0)
+    normalizer = MinMaxNormalizer(np.array([-1, -1, -2, -2, -5, -5.0]), np.array([1, 1, 2, 2, 5, 5.0]))
+    bundle = make_bundle(ModelParams(dim=8, dim_mults=[1, 2]), DiffusionParams(horizon=16, n_steps=4), 4, 2, normalizer)
+    planner = Planner(bundle, DDIMSampler(2), torch.device("cpu"))
+    tasks = sample_navigation_tasks(env, 5, np.random.default_rng(1))
+    plans = generate_plans(planner, tasks, batch_size=2, seed=0, progress=False)
+    assert plans.shape == (5, 16, 6)
+    np.testing.assert_allclose(plans[:, 0, 2:], tasks.starts, atol=1e-5)
+    np.testing.assert_allclose(plans[:, -1, 2:], tasks.goals, atol=1e-5)
+    np.testing.assert_array_equal(plans, generate_plans(planner, tasks, batch_size=2, seed=0, progress=False))
+
+    tracked = [track_plan(env, p[:, 2:], goal=g) for p, g in zip(plans, tasks.goals, strict=True)]
+    keep = select_top_k(np.array([-t.max_error for t in tracked]), 3)
+    traj = synthetic_trajectories(tracked, tasks, keep, "maze2d-umaze", {"phase": 1})
+    path = tmp_path / "selected.parquet"
+    write_trajectories(path, traj)
+    back = read_trajectories(path)
+    assert back.metadata["source"] == "synthetic" and len(back.episodes()) == 3 and len(back) == 3 * 15
+    assert sorted(set(back.extra["task_id"].tolist())) == sorted(keep.tolist())
+    first = back.episodes()[0]
+    np.testing.assert_allclose(back.extra["task_goal"][first][0], tasks.goals[keep[0]], atol=1e-6)
+    np.testing.assert_allclose(back.observation[first], tracked[keep[0]].observations[:-1], atol=1e-6)
+    with pytest.raises(ValueError, match="no trajectory was kept"):
+        synthetic_trajectories(tracked, tasks, np.zeros(0), "maze2d-umaze", {})
