@@ -28,6 +28,9 @@ def normalized_score(returns: np.ndarray | float, r_min: float, r_max: float) ->
 class Controller:
     """Chooses actions for a batch of environments running in lock-step."""
 
+    #: the state sequences planned at t = 0 for the current batch, if the controller plans (for pictures)
+    first_plans: np.ndarray | None = None
+
     def begin(self, envs: list[PlanningEnv], obs: np.ndarray, episodes: list[int]) -> None:
         """Called once per batch after reset."""
 
@@ -103,7 +106,7 @@ def run_episodes(
             obs = np.stack([env.step(a) for env, a in zip(batch_envs, actions, strict=True)])
             trace[t + 1] = obs
             rewards[t] = [env.reward(o) for env, o in zip(batch_envs, obs, strict=True)]
-        plans = getattr(controller, "first_plans", None)
+        plans = controller.first_plans
         for i, ep in enumerate(episodes):
             hits = np.flatnonzero(rewards[:, i] > 0)
             result.episodes.append(ep)

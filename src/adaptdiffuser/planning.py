@@ -61,7 +61,6 @@ class PlannerController(Controller):
         self.planner = planner
         self.seed = seed
         self.replan_every = replan_every
-        self.first_plans: np.ndarray | None = None
 
     def begin(self, envs, obs, episodes):
         self.episodes = episodes
