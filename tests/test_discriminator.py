@@ -12,6 +12,7 @@ from adaptdiffuser.checkpoint import make_bundle
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import read_trajectories, write_trajectories
+from adaptdiffuser.data.windows import WindowDataset
 from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evolution.discriminator import (
@@ -59,14 +60,16 @@ def test_a_plan_the_controller_can_follow_is_kept_with_its_real_states_and_actio
     plan = expert_states(128, start_cell=(3, 1), goal_cell=(1, 3))
     tracked = track_plan(env, plan, goal=np.array([*env.cell_to_xy((1, 3)), 0.0, 0.0]))
     assert passes_tracking(tracked, THRESHOLD), tracked.max_error
-    assert tracked.observations.shape == (128, 4) and tracked.actions.shape == (127, 2)
+    # one action per state (the last holds the final planned position) and one reward per state
+    assert tracked.observations.shape == (128, 4) and tracked.actions.shape == (128, 2)
+    assert tracked.rewards.shape == (128,) and tracked.errors.shape == (127,)
     assert np.all(np.abs(tracked.actions) <= 1.0)
     # the rewards are measured against the task's goal, not the evaluation goal
     assert tracked.total_reward > 0 and tracked.steps_to_goal > 0
     np.testing.assert_array_equal(env.goal_xy, env.cell_to_xy((1, 3)))
     # replaying the kept actions from the first state reproduces the kept states exactly
     obs = env.set_state(tracked.observations[0])
-    for action, expected in zip(tracked.actions, tracked.observations[1:], strict=True):
+    for action, expected in zip(tracked.actions[:-1], tracked.observations[1:], strict=True):
         obs = env.step(action)
         np.testing.assert_allclose(obs, expected)
 
@@ -135,10 +138,13 @@ def test_generated_plans_hit_their_tasks_and_kept_data_round_trips(tmp_path: Pat
     path = tmp_path / "selected.parquet"
     write_trajectories(path, traj)
     back = read_trajectories(path)
-    assert back.metadata["source"] == "synthetic" and len(back.episodes()) == 3 and len(back) == 3 * 15
+    assert back.metadata["source"] == "synthetic" and len(back.episodes()) == 3 and len(back) == 3 * 16
     assert sorted(set(back.extra["task_id"].tolist())) == sorted(keep.tolist())
     first = back.episodes()[0]
     np.testing.assert_allclose(back.extra["task_goal"][first][0], tasks.goals[keep[0]], atol=1e-6)
-    np.testing.assert_allclose(back.observation[first], tracked[keep[0]].observations[:-1], atol=1e-6)
+    np.testing.assert_allclose(back.observation[first], tracked[keep[0]].observations, atol=1e-6)
+    np.testing.assert_allclose(back.reward[first], tracked[keep[0]].rewards)
+    # a kept trajectory fills exactly one training window of the model's horizon
+    assert len(WindowDataset(back, 16, normalizer)) == 3
     with pytest.raises(ValueError, match="no trajectory was kept"):
         synthetic_trajectories(tracked, tasks, np.zeros(0), "maze2d-umaze", {})

@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from adaptdiffuser.checkpoint import ModelBundle
 from adaptdiffuser.config import PretrainParams
-from adaptdiffuser.data.windows import WindowDataset
+from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
 from adaptdiffuser.io import atomic_path
 
 LogFn = Callable[[int, float], None]
@@ -37,7 +37,7 @@ def _copy_weights(dst: torch.nn.Module, src: torch.nn.Module) -> None:
 
 def train(
     bundle: ModelBundle,
-    dataset: WindowDataset,
+    dataset: WindowDataset | MixedWindowDataset,
     cfg: PretrainParams,
     device: torch.device,
     resume_path: Path | None = None,

@@ -32,3 +32,57 @@ class WindowDataset:
         """A batch ``[batch, horizon, act_dim + obs_dim]`` of normalized windows."""
         starts = self.starts[rng.integers(len(self.starts), size=batch_size)]
         return self.data[starts[:, None] + np.arange(self.horizon)[None, :]]
+
+
+class MixedWindowDataset:
+    """Batches drawn from several window datasets in fixed proportions (AdaptDiffuser fine-tuning mixes expert
+    and selected synthetic windows; the released code uses half and half per batch)."""
+
+    def __init__(self, parts: list[WindowDataset], weights: list[float]) -> None:
+        if not parts or len(parts) != len(weights):
+            raise ValueError("need one weight per dataset and at least one dataset")
+        if any(w < 0 for w in weights) or sum(weights) <= 0:
+            raise ValueError(f"mixing weights must be non-negative with a positive sum, got {weights}")
+        if len({p.horizon for p in parts}) != 1:
+            raise ValueError("all mixed datasets must share one horizon")
+        self.parts = parts
+        self.weights = np.asarray(weights, dtype=np.float64) / np.sum(weights)
+        self.horizon = parts[0].horizon
+
+    def __len__(self) -> int:
+        return sum(len(p) for p in self.parts)
+
+    def counts(self, batch_size: int) -> list[int]:
+        """How many windows of a batch each dataset supplies (largest remainder, summing to ``batch_size``)."""
+        raw = self.weights * batch_size
+        counts = np.floor(raw).astype(int)
+        for i in np.argsort(-(raw - counts), kind="stable")[: batch_size - counts.sum()]:
+            counts[i] += 1
+        return counts.tolist()
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> np.ndarray:
+        """A batch with each dataset's share of windows, in dataset order."""
+        chunks = [p.sample(k, rng) for p, k in zip(self.parts, self.counts(batch_size), strict=True) if k]
+        return np.concatenate(chunks)
+
+
+def subset_episodes(traj: Trajectories, fraction: float, rng: np.random.Generator) -> Trajectories:
+    """A random ``fraction`` of the episodes (at least one), for the paper's limited-expert-data ablation."""
+    if not 0.0 < fraction <= 1.0:
+        raise ValueError(f"fraction of episodes must be in (0, 1], got {fraction}")
+    episodes = traj.episodes()
+    if fraction == 1.0:
+        return traj
+    chosen = np.sort(rng.choice(len(episodes), size=max(1, round(fraction * len(episodes))), replace=False))
+    rows = np.concatenate([np.arange(episodes[i].start, episodes[i].stop) for i in chosen])
+    return Trajectories(
+        episode_id=traj.episode_id[rows],
+        step=traj.step[rows],
+        observation=traj.observation[rows],
+        action=traj.action[rows],
+        reward=traj.reward[rows],
+        terminal=traj.terminal[rows],
+        timeout=traj.timeout[rows],
+        metadata=traj.metadata,
+        extra={name: values[rows] for name, values in traj.extra.items()},
+    )

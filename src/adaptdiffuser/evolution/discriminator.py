@@ -15,8 +15,10 @@ from adaptdiffuser.envs.base import PlanningEnv
 
 @dataclass
 class TrackedTrajectory:
-    """A plan executed by the tracking controller: real observations ``[H, obs]`` and actions ``[H - 1, act]``,
-    the per-step tracking error, the protocol reward of each executed step and the first step at the goal."""
+    """A plan executed by the tracking controller: real observations ``[H, obs]`` and the actions taken in each
+    of them ``[H, act]`` (the last one holds the final planned position, as the plan follower does after a plan
+    ends, so the trajectory fills a training window of length H), the tracking error of each step ``[H - 1]``,
+    the protocol reward of each executed state ``[H]`` (as in the expert data) and the first step at the goal."""
 
     observations: np.ndarray
     actions: np.ndarray
@@ -45,7 +47,7 @@ def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | 
         env.set_goal_state(goal)
     obs = env.set_state(planned_states[0])
     observations = [obs]
-    actions, errors, rewards = [], [], []
+    actions, errors, rewards = [], [], [env.reward(obs)]
     for target in planned_states[1:]:
         action = env.tracking_action(obs, target)
         obs = env.step(action)
@@ -53,6 +55,9 @@ def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | 
         actions.append(action)
         errors.append(env.tracking_error(obs, target))
         rewards.append(env.reward(obs))
+    hold = np.array(planned_states[-1], dtype=np.float64)
+    hold[2:] = 0.0
+    actions.append(env.tracking_action(obs, hold))
     rewards_arr = np.asarray(rewards, dtype=np.float64)
     hits = np.flatnonzero(rewards_arr > 0)
     return TrackedTrajectory(
@@ -60,7 +65,7 @@ def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | 
         actions=np.asarray(actions).reshape(len(actions), env.act_dim),
         errors=np.asarray(errors, dtype=np.float64),
         rewards=rewards_arr,
-        steps_to_goal=int(hits[0]) + 1 if len(hits) else -1,
+        steps_to_goal=int(hits[0]) if len(hits) else -1,
     )
 
 

@@ -40,7 +40,7 @@ def synthetic_trajectories(
     parts = [tracked[i] for i in keep]
     obs_dim = parts[0].observations.shape[1]
     act_dim = parts[0].actions.shape[1]
-    lengths = [len(p.actions) for p in parts]
+    lengths = [len(p.observations) for p in parts]
     n = sum(lengths)
     episode_id = np.repeat(np.arange(len(parts)), lengths)
     timeout = np.zeros(n, dtype=bool)
@@ -48,7 +48,7 @@ def synthetic_trajectories(
     return Trajectories(
         episode_id=episode_id,
         step=np.concatenate([np.arange(k) for k in lengths]),
-        observation=np.concatenate([p.observations[:-1] for p in parts]),
+        observation=np.concatenate([p.observations for p in parts]),
         action=np.concatenate([p.actions for p in parts]),
         reward=np.concatenate([p.rewards for p in parts]).astype(np.float32),
         terminal=np.zeros(n, dtype=bool),
