@@ -25,6 +25,12 @@ def normalized_score(returns: np.ndarray | float, r_min: float, r_max: float) ->
     return 100.0 * (np.asarray(returns, dtype=np.float64) - r_min) / (r_max - r_min)
 
 
+def standard_error(values: np.ndarray | list[float]) -> float:
+    """Standard error of the mean (sample standard deviation / sqrt(n)); 0 for fewer than two values."""
+    values = np.asarray(values, dtype=np.float64)
+    return float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
+
+
 class Controller:
     """Chooses actions for a batch of environments running in lock-step."""
 
@@ -127,10 +133,9 @@ def summarize(result: EpisodeBatchResult, r_min: float, r_max: float) -> dict[st
     returns = np.asarray(result.returns)
     scores = normalized_score(returns, r_min, r_max)
     n = len(returns)
-    stderr = float(scores.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0
     return {
         "score_mean": float(scores.mean()),
-        "score_stderr": stderr,
+        "score_stderr": standard_error(scores),
         "return_mean": float(returns.mean()),
         "n_episodes": int(n),
         "success_rate": float(np.mean(result.final_success)),

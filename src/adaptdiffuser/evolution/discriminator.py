@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from adaptdiffuser.envs.base import PlanningEnv
+from adaptdiffuser.planning import PlanFollower
 
 
 @dataclass
@@ -40,24 +41,23 @@ class TrackedTrajectory:
 
 
 def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | None = None) -> TrackedTrajectory:
-    """Start the simulator at ``planned_states[0]`` and follow ``planned_states[t + 1]`` with the environment's
-    tracking controller; the error at step t is :meth:`PlanningEnv.tracking_error` of the executed and planned
+    """Start the simulator at ``planned_states[0]`` and follow the plan with :class:`PlanFollower` (the same
+    controller evaluation uses); the error at step t is :meth:`PlanningEnv.tracking_error` of the executed and planned
     next states. Rewards are measured against ``goal`` when given (the task's goal), else the env's goal."""
     if goal is not None:
         env.set_goal_state(goal)
+    follower = PlanFollower(env, planned_states)
     obs = env.set_state(planned_states[0])
     observations = [obs]
     actions, errors, rewards = [], [], [env.reward(obs)]
-    for target in planned_states[1:]:
-        action = env.tracking_action(obs, target)
+    for t in range(len(planned_states) - 1):
+        action = follower.act(obs, t)
         obs = env.step(action)
         observations.append(obs)
         actions.append(action)
-        errors.append(env.tracking_error(obs, target))
+        errors.append(env.tracking_error(obs, follower.waypoint(t)))
         rewards.append(env.reward(obs))
-    hold = np.array(planned_states[-1], dtype=np.float64)
-    hold[2:] = 0.0
-    actions.append(env.tracking_action(obs, hold))
+    actions.append(follower.act(obs, len(planned_states) - 1))  # past the end: hold the final position
     rewards_arr = np.asarray(rewards, dtype=np.float64)
     hits = np.flatnonzero(rewards_arr > 0)
     return TrackedTrajectory(

@@ -9,7 +9,7 @@ import numpy as np
 
 from adaptdiffuser.config import Params
 from adaptdiffuser.envs.factory import make_env
-from adaptdiffuser.evaluation import ExpertController, RandomController, run_episodes
+from adaptdiffuser.evaluation import ExpertController, RandomController, run_episodes, standard_error
 from adaptdiffuser.io import write_json
 from adaptdiffuser.stages.common import REFERENCE
 from adaptdiffuser.tracking import stage_run
@@ -57,8 +57,8 @@ def run_reference(params: Params, root: Path, progress: bool = True) -> dict:
         ref = {
             "r_min": float(np.mean(random.returns)),
             "r_max": float(np.mean(expert.returns)),
-            "r_min_stderr": float(np.std(random.returns, ddof=1) / np.sqrt(ev.episodes)) if ev.episodes > 1 else 0.0,
-            "r_max_stderr": float(np.std(expert.returns, ddof=1) / np.sqrt(ev.episodes)) if ev.episodes > 1 else 0.0,
+            "r_min_stderr": standard_error(random.returns),
+            "r_max_stderr": standard_error(expert.returns),
             "n_episodes": ev.episodes,
             "expert_success_rate": float(np.mean(expert.final_success)),
         }
