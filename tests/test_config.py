@@ -122,6 +122,29 @@ BAD = [
     ({"planner": {"tracking_p_gain": 0.0}}, "planner.tracking_p_gain"),
     ({"planner": {"tracking_d_gain": -0.5}}, "planner.tracking_d_gain"),
     ({"env": {"tracking_p_gain": 1.0}}, "env.tracking_p_gain"),  # the gains live in planner now
+    ({"pretrain": {"expert_fraction": 0.0}}, "pretrain.expert_fraction"),
+    ({"phases": {"phase1": {"previous": 1}}}, "phases.phase1.previous"),
+    ({"phases": {"phase3": {}}}, "phases.phase3.previous"),
+    ({"phases": {"first": {"previous": 0}}}, "phases.first"),
+    ({"phases": {"phase4": {"previous": 0}}}, "phase1..phase3"),
+    ({"phases": [{"previous": 0}]}, "phases must be a mapping"),
+    ({"phases": {"phase1": {"previous": 0, "generate": {"taskz": 3}}}}, "phases.phase1.generate.taskz"),
+    ({"phases": {"phase1": {"previous": 0, "generate": {"tasks": 0}}}}, "phases.phase1.generate.tasks"),
+    ({"phases": {"phase1": {"previous": 0}}, "evolution": {"discriminate": {"rule": "best"}}}, "discriminate.rule"),
+    (
+        {"phases": {"phase1": {"previous": 0}}, "evolution": {"discriminate": {"quantile": 1.5}}},
+        "discriminate.quantile",
+    ),
+    (
+        {"phases": {"phase1": {"previous": 0}}, "evolution": {"discriminate": {"max_error": 0}}},
+        "discriminate.max_error",
+    ),
+    ({"phases": {"phase1": {"previous": 0}}, "evolution": {"finetune": {"expert_weight": 1.0}}}, "expert_weight"),
+    ({"phases": {"phase1": {"previous": 0}}, "evolution": {"generate": {"sampler_steps": 65}}}, "sampler_steps"),
+    (
+        {"phases": {"phase1": {"previous": 0}}, "env": {"layout": ["###", "#G#", "#.#", "###"]}},
+        "rule 'paper'",
+    ),
 ]
 
 
@@ -129,6 +152,26 @@ BAD = [
 def test_bad_values_raise_config_error_naming_the_key(tmp_path: Path, overlay: dict, key: str) -> None:
     with pytest.raises(ConfigError, match=key):
         load_params(write_params(tmp_path, overlay))
+
+
+def test_phases_merge_their_overrides_over_the_evolution_defaults(tmp_path: Path) -> None:
+    overlay = {
+        "evolution": {"generate": {"tasks": 64}, "discriminate": {"rule": "quantile"}},
+        "phases": {
+            "phase2": {"previous": 1, "discriminate": {"quantile": 0.8}},
+            "phase1": {"previous": 0},
+            "phase3": {"previous": 1, "generate": {"tasks": 8}},
+        },
+    }
+    p = load_params(write_params(tmp_path, overlay))
+    assert p.phase_names == ["phase1", "phase2", "phase3"]
+    assert [p.phase(k).generate.tasks for k in (1, 2, 3)] == [64, 64, 8]
+    assert [p.phase(k).discriminate.quantile for k in (1, 2, 3)] == [0.5, 0.8, 0.5]
+    assert all(p.phase(k).discriminate.rule == "quantile" for k in (1, 2, 3))
+    # phase 3 branches from phase 1: it trains on the data selected in phases 1 and 3, not 2
+    assert p.lineage(3) == [1, 3] and p.lineage(2) == [1, 2] and p.lineage(0) == []
+    with pytest.raises(ConfigError, match="phase 4 is not declared"):
+        p.phase(4)
 
 
 def test_horizon_divisibility_follows_the_unet_factor(tmp_path: Path) -> None:
@@ -139,7 +182,9 @@ def test_horizon_divisibility_follows_the_unet_factor(tmp_path: Path) -> None:
 
 def test_valid_custom_layout_and_episode_length(tmp_path: Path) -> None:
     layout = ["######", "#..#G#", "#....#", "#.##.#", "######"]
-    params = load_params(write_params(tmp_path, {"env": {"layout": layout, "episode_steps": 200}}))
+    # the paper's reward/length thresholds exist for the three D4RL mazes only, so a custom maze selects by quantile
+    overlay = {"env": {"layout": layout, "episode_steps": 200}, "evolution": {"discriminate": {"rule": "quantile"}}}
+    params = load_params(write_params(tmp_path, overlay))
     assert params.env.layout == layout and params.env.episode_steps == 200 and params.task == "maze2d-custom"
 
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from adaptdiffuser.checkpoint import make_bundle
-from adaptdiffuser.config import DiffusionParams, ModelParams, Params
+from adaptdiffuser.config import DiffusionParams, DiscriminateParams, ModelParams, Params
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import read_trajectories, write_trajectories
 from adaptdiffuser.data.windows import WindowDataset
@@ -17,12 +17,14 @@ from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evolution.discriminator import (
     PAPER_MAZE_RULES,
+    discriminate,
     passes_tracking,
+    planned_trajectory,
     select_by_quantile,
     select_top_k,
     track_plan,
 )
-from adaptdiffuser.evolution.generate import generate_plans, synthetic_trajectories
+from adaptdiffuser.evolution.generate import generate_plans, split_task_trajectories, task_trajectories
 from adaptdiffuser.evolution.tasks import sample_navigation_tasks
 from adaptdiffuser.planning import Planner
 
@@ -134,7 +136,7 @@ def test_generated_plans_hit_their_tasks_and_kept_data_round_trips(tmp_path: Pat
 
     tracked = [track_plan(env, p[:, 2:], goal=g) for p, g in zip(plans, tasks.goals, strict=True)]
     keep = select_top_k(np.array([-t.max_error for t in tracked]), 3)
-    traj = synthetic_trajectories(tracked, tasks, keep, "maze2d-umaze", {"phase": 1})
+    traj = task_trajectories([tracked[i] for i in keep], tasks, keep, "maze2d-umaze", {"phase": 1})
     path = tmp_path / "selected.parquet"
     write_trajectories(path, traj)
     back = read_trajectories(path)
@@ -146,5 +148,74 @@ def test_generated_plans_hit_their_tasks_and_kept_data_round_trips(tmp_path: Pat
     np.testing.assert_allclose(back.reward[first], tracked[keep[0]].rewards)
     # a kept trajectory fills exactly one training window of the model's horizon
     assert len(WindowDataset(back, 16, normalizer)) == 3
-    with pytest.raises(ValueError, match="no trajectory was kept"):
-        synthetic_trajectories(tracked, tasks, np.zeros(0), "maze2d-umaze", {})
+    states, _, back_tasks = split_task_trajectories(back)
+    np.testing.assert_allclose(states[1], tracked[keep[1]].observations, atol=1e-6)
+    np.testing.assert_allclose(back_tasks.goals, tasks.goals[keep], atol=1e-6)
+    with pytest.raises(ValueError, match="no trajectories"):
+        task_trajectories([], tasks, np.zeros(0), "maze2d-umaze", {})
+
+
+def _wall_and_feasible_plans() -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
+    """Three plans in U-Maze: two the expert drove (one reaching its goal early, one late) and one through a wall."""
+    env = make_env(Params())
+    goal = np.array([*env.cell_to_xy((1, 3)), 0.0, 0.0])
+    early = expert_states(128, start_cell=(1, 2), goal_cell=(1, 3))
+    late = expert_states(128, start_cell=(3, 1), goal_cell=(1, 3))
+    y = np.linspace(1.0, -1.0, 128)
+    wall = np.stack([np.full(128, -1.0), y, np.zeros(128), np.gradient(y) / 0.01], axis=1)
+    states = [early, late, wall]
+    actions = [np.zeros((128, 2)) for _ in states]
+    return states, actions, np.stack([goal, goal, goal])
+
+
+def test_discriminate_rejects_by_tracking_then_selects_by_real_reward() -> None:
+    env = make_env(Params())
+    states, actions, goals = _wall_and_feasible_plans()
+    cfg = DiscriminateParams(max_error=THRESHOLD, rule="quantile", quantile=1.0)
+    judgement = discriminate(env, states, actions, goals, cfg, "umaze", progress=False)
+    assert judgement.passed_tracking.tolist() == [True, True, False]
+    assert judgement.kept.tolist() == [0]  # the one at the goal sooner scores the higher real return
+    report = judgement.report()
+    assert report["generated"] == 3 and report["rejected_tracking"] == 1 and report["rejected_reward"] == 1
+    assert report["kept"] == 1 and report["kept_fraction"] == pytest.approx(1 / 3)
+    assert report["tracking_error_mean"] > 0 and report["return_mean_kept"] >= report["return_mean"]
+
+    # top_k keeps both feasible plans, best first; the wall plan never reaches selection
+    both = discriminate(
+        env,
+        states,
+        actions,
+        goals,
+        DiscriminateParams(max_error=THRESHOLD, rule="top_k", top_k=5),
+        "umaze",
+        progress=False,
+    )
+    assert both.kept.tolist() == [0, 1]
+
+
+def test_discriminate_without_tracking_takes_plans_at_their_word() -> None:
+    env = make_env(Params())
+    states, actions, goals = _wall_and_feasible_plans()
+    cfg = DiscriminateParams(tracking=False, rule="top_k", top_k=3)
+    judgement = discriminate(env, states, actions, goals, cfg, "umaze", progress=False)
+    # nothing is simulated: the wall plan passes and the kept data are the planned states themselves
+    assert judgement.passed_tracking.all() and len(judgement.kept) == 3
+    np.testing.assert_array_equal(judgement.trajectories[2].observations, states[2])
+    assert judgement.trajectories[2].max_error == 0.0
+    assert (
+        planned_trajectory(env, states[0], actions[0], goals[0]).total_reward == judgement.trajectories[0].total_reward
+    )
+
+
+def test_paper_rule_scores_length_as_the_trajectory_length() -> None:
+    env = make_env(Params())
+    states, actions, goals = _wall_and_feasible_plans()
+    judgement = discriminate(
+        env, states, actions, goals, DiscriminateParams(max_error=THRESHOLD, rule="paper"), "umaze", progress=False
+    )
+    rule = PAPER_MAZE_RULES["umaze"]
+    # with L = 128, the U-Maze rule R + (300 - L) > 210 asks for more than 38 steps at the goal
+    returns = [judgement.trajectories[i].total_reward for i in (0, 1)]
+    assert returns[0] > 38 >= returns[1]
+    assert [rule.keeps(r, 128) for r in returns] == [True, False]
+    assert judgement.kept.tolist() == [0]

@@ -10,6 +10,7 @@ import typer
 
 from adaptdiffuser.config import ConfigError, Params, apply_profile, load_params
 from adaptdiffuser.data.schema import SchemaError
+from adaptdiffuser.errors import StageError
 
 app = typer.Typer(help="AdaptDiffuser: pipeline stages and tools.", no_args_is_help=True, add_completion=False)
 
@@ -20,6 +21,18 @@ Device = Annotated[
 ]
 Progress = Annotated[bool, typer.Option("--progress/--no-progress", help="show progress bars")]
 
+
+def _phase_index(value: str) -> int:
+    """``--phase`` accepts ``2`` or ``phase2`` (the name DVC's foreach passes)."""
+    digits = value.removeprefix("phase")
+    if not digits.isdigit():
+        raise typer.BadParameter(f"expected a phase number or name like 2 or phase2, got {value!r}")
+    return int(digits)
+
+
+PhaseOption = typer.Option("--phase", parser=_phase_index, metavar="K", help="phase number or name (2 or phase2)")
+EvolutionPhase = Annotated[int, PhaseOption]
+
 T = TypeVar("T")
 
 
@@ -27,7 +40,7 @@ def _guarded(fn: Callable[[], T]) -> T:
     """Run a stage body; turn known input errors into a one-line message and exit code 2."""
     try:
         return fn()
-    except (ConfigError, SchemaError, FileNotFoundError) as err:
+    except (ConfigError, SchemaError, FileNotFoundError, StageError) as err:
         typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2) from err
 
@@ -70,11 +83,11 @@ def pretrain(params: ParamsPath = Path("params.yaml"), device: Device = "auto", 
 @app.command()
 def evaluate(
     params: ParamsPath = Path("params.yaml"),
-    phase: Annotated[int, typer.Option(help="which phase's model to evaluate")] = 0,
+    phase: Annotated[int, PhaseOption] = 0,
     device: Device = "auto",
     progress: Progress = True,
 ) -> None:
-    """Evaluate a phase's model under the protocol; write results, pictures and metrics/phase<k>.json."""
+    """Evaluate a phase's model under the protocol; write results, pictures and metrics/phases/phase<k>.json."""
     from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.stages.evaluate import run_evaluate
 
@@ -87,12 +100,64 @@ def evaluate(
 
 
 @app.command()
-def summarize(phases: Annotated[list[int], typer.Option("--phase", help="phases to include")] = [0]) -> None:  # noqa: B006
-    """Merge per-phase metrics into metrics/summary.json."""
+def generate(
+    phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), device: Device = "auto", progress: Progress = True
+) -> None:
+    """Sample plans for random tasks with phase k-1's model into data/phase<k>/generated.parquet."""
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.generate import run_generate
+
+    p = _params(params)
+    stats = _guarded(lambda: run_generate(p, Path.cwd(), phase, resolve_device(device), progress=progress))
+    typer.echo(
+        f"phase {phase}: generated {stats['generated']} plans (planned reach rate {stats['planned_reach_rate']:.2f})"
+    )
+
+
+@app.command()
+def discriminate(phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), progress: Progress = True) -> None:
+    """Track generated plans in the simulator, reject and select into data/phase<k>/selected.parquet."""
+    from adaptdiffuser.stages.discriminate import run_discriminate
+
+    p = _params(params)
+    report = _guarded(lambda: run_discriminate(p, Path.cwd(), phase, progress=progress))
+    typer.echo(
+        f"phase {phase}: kept {report['kept']} of {report['generated']} "
+        f"({report['rejected_tracking']} failed tracking, {report['rejected_reward']} failed the reward rule)"
+    )
+
+
+@app.command()
+def finetune(
+    phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), device: Device = "auto", progress: Progress = True
+) -> None:
+    """Fine-tune phase k-1's model on expert plus selected data into models/phase<k>."""
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.finetune import run_finetune
+
+    p = _params(params)
+    out = _guarded(lambda: run_finetune(p, Path.cwd(), phase, resolve_device(device), progress=progress))
+    typer.echo(f"wrote {out}")
+
+
+@app.command()
+def summarize(params: ParamsPath = Path("params.yaml")) -> None:
+    """Merge the metrics of phase 0 and every declared phase into metrics/summary.json."""
     from adaptdiffuser.stages.summarize import run_summarize
 
-    _guarded(lambda: run_summarize(Path.cwd(), sorted(set(phases))))
+    p = _params(params)
+    _guarded(lambda: run_summarize(Path.cwd(), [0, *(phase.index for phase in p.phases)]))
     typer.echo("wrote metrics/summary.json")
+
+
+@app.command()
+def report() -> None:
+    """Score by phase: plots/report/score_by_phase.png and metrics/score_by_phase.csv."""
+    from adaptdiffuser.stages.report import run_report
+
+    rows = _guarded(lambda: run_report(Path.cwd()))
+    for row in rows:
+        typer.echo(f"phase {row['phase']}: score {row['score_mean']:.1f} +- {row['score_stderr']:.1f}")
 
 
 @app.command()

@@ -7,6 +7,7 @@ work starts, with a message naming the key (for example ``pretrain.steps``).
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -21,6 +22,9 @@ from adaptdiffuser.io import atomic_path
 
 class ConfigError(ValueError):
     """A params value is missing, unknown or invalid; the message names the key."""
+
+
+SELECTION_RULES = ("paper", "quantile", "top_k")
 
 
 @dataclass(frozen=True)
@@ -77,6 +81,53 @@ class PretrainParams:
     log_every: int = 100
     checkpoint_every: int = 1000
     seed: int = 0
+    expert_fraction: float = 1.0
+
+
+@dataclass(frozen=True)
+class GenerateParams:
+    tasks: int = 1024
+    batch_size: int = 128
+    seed: int = 100
+    sampler: str = "ddim"
+    sampler_steps: int = 16
+    cell_spread: float = 0.4
+
+
+@dataclass(frozen=True)
+class DiscriminateParams:
+    tracking: bool = True
+    max_error: float = 1.0
+    rule: str = "paper"
+    quantile: float = 0.5
+    top_k: int = 64
+
+
+@dataclass(frozen=True)
+class FinetuneParams:
+    steps_fraction: float = 0.25
+    expert_weight: float = 0.5
+    seed: int = 1
+
+
+@dataclass(frozen=True)
+class EvolutionParams:
+    generate: GenerateParams = field(default_factory=GenerateParams)
+    discriminate: DiscriminateParams = field(default_factory=DiscriminateParams)
+    finetune: FinetuneParams = field(default_factory=FinetuneParams)
+
+
+@dataclass(frozen=True)
+class PhaseParams:
+    """One evolution phase: its name (``phase<k>``), index k, the phase whose model it starts from, and the
+    ``evolution`` sections with this phase's overrides merged in."""
+
+    name: str
+    index: int
+    previous: int
+    generate: GenerateParams
+    discriminate: DiscriminateParams
+    finetune: FinetuneParams
 
 
 @dataclass(frozen=True)
@@ -106,6 +157,8 @@ class Params:
     pretrain: PretrainParams = field(default_factory=PretrainParams)
     planner: PlannerParams = field(default_factory=PlannerParams)
     evaluate: EvaluateParams = field(default_factory=EvaluateParams)
+    evolution: EvolutionParams = field(default_factory=EvolutionParams)
+    phases: tuple[PhaseParams, ...] = ()
 
     @property
     def task(self) -> str:
@@ -116,6 +169,25 @@ class Params:
         """One params section as a plain dict (for logging)."""
         return dataclasses.asdict(getattr(self, name))
 
+    def phase(self, index: int) -> PhaseParams:
+        """The evolution phase ``index`` (1..K); :class:`ConfigError` if params.yaml does not declare it."""
+        for phase in self.phases:
+            if phase.index == index:
+                return phase
+        raise ConfigError(f"phase {index} is not declared under 'phases' in params (have {self.phase_names})")
+
+    @property
+    def phase_names(self) -> list[str]:
+        return [phase.name for phase in self.phases]
+
+    def lineage(self, index: int) -> list[int]:
+        """The evolution phases whose selected data trains phase ``index``: it and its ancestors, oldest first."""
+        chain = []
+        while index > 0:
+            chain.append(index)
+            index = self.phase(index).previous
+        return chain[::-1]
+
 
 def load_params(path: str | Path = "params.yaml") -> Params:
     """Load and validate ``params.yaml``; raise :class:`ConfigError` naming the first bad key."""
@@ -125,9 +197,51 @@ def load_params(path: str | Path = "params.yaml") -> Params:
     raw = yaml.safe_load(path.read_text()) or {}
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: top level must be a mapping of sections")
+    phases_raw = raw.pop("phases", None) or {}
     params = _build(Params, raw, prefix="")
+    evolution_raw = raw.get("evolution") or {}
+    params = dataclasses.replace(params, phases=_build_phases(phases_raw, evolution_raw))
     validate(params)
     return params
+
+
+_PHASE_NAME = re.compile(r"phase([1-9][0-9]*)")
+
+
+def _build_phases(raw: Any, evolution: dict[str, Any]) -> tuple[PhaseParams, ...]:
+    """``phases`` is a mapping ``phase<k>: {previous: j, <evolution overrides>}``, k = 1..K."""
+    if not isinstance(raw, dict):
+        raise ConfigError(f"phases must be a mapping like {{phase1: {{previous: 0}}}}, got {type(raw).__name__}")
+    phases = []
+    for name, entry in raw.items():
+        match = _PHASE_NAME.fullmatch(str(name))
+        if not match:
+            raise ConfigError(f"phases.{name}: phase names must be phase1, phase2, ...")
+        entry = dict(entry or {})
+        if "previous" not in entry:
+            raise ConfigError(f"phases.{name}.previous is required (the phase whose model it starts from)")
+        previous = _coerce(entry.pop("previous"), int, f"phases.{name}.previous")
+        merged = _build(EvolutionParams, deep_merge(evolution, entry), prefix=f"phases.{name}.")
+        phases.append(
+            PhaseParams(
+                name=str(name),
+                index=int(match.group(1)),
+                previous=previous,
+                generate=merged.generate,
+                discriminate=merged.discriminate,
+                finetune=merged.finetune,
+            )
+        )
+    phases.sort(key=lambda phase: phase.index)
+    indices = [phase.index for phase in phases]
+    if indices != list(range(1, len(phases) + 1)):
+        raise ConfigError(f"phases must be named phase1..phase{len(phases)} without gaps, got {indices}")
+    for phase in phases:
+        if not 0 <= phase.previous < phase.index:
+            raise ConfigError(
+                f"phases.{phase.name}.previous={phase.previous} must name an earlier phase (0..{phase.index - 1})"
+            )
+    return tuple(phases)
 
 
 def validate(p: Params) -> None:
@@ -170,6 +284,43 @@ def validate(p: Params) -> None:
         )
     _non_negative(p, "planner.replan_every", "evaluate.pictures")
     _positive(p, "evaluate.episodes", "evaluate.batch_size")
+    if not 0.0 < p.pretrain.expert_fraction <= 1.0:
+        raise ConfigError(f"pretrain.expert_fraction must be in (0, 1], got {p.pretrain.expert_fraction}")
+    for phase in p.phases:
+        _validate_phase(p, phase)
+
+
+def _validate_phase(p: Params, phase: PhaseParams) -> None:
+    where = f"phases.{phase.name}"
+    g, d, f = phase.generate, phase.discriminate, phase.finetune
+    for key, value in [("generate.tasks", g.tasks), ("generate.batch_size", g.batch_size)]:
+        if value <= 0:
+            raise ConfigError(f"{where}.{key} (or evolution.{key}) must be > 0, got {value}")
+    if g.sampler not in ("ddpm", "ddim"):
+        raise ConfigError(f"{where}.generate.sampler must be 'ddpm' or 'ddim', got {g.sampler!r}")
+    if not 0 < g.sampler_steps <= p.diffusion.n_steps:
+        raise ConfigError(
+            f"{where}.generate.sampler_steps={g.sampler_steps} must be in 1..diffusion.n_steps={p.diffusion.n_steps}"
+        )
+    if not 0.0 <= g.cell_spread < 0.5:
+        raise ConfigError(f"{where}.generate.cell_spread must be in [0, 0.5) (half a cell), got {g.cell_spread}")
+    if d.max_error <= 0:
+        raise ConfigError(f"{where}.discriminate.max_error must be > 0, got {d.max_error}")
+    if d.rule not in SELECTION_RULES:
+        raise ConfigError(f"{where}.discriminate.rule must be one of {SELECTION_RULES}, got {d.rule!r}")
+    if d.rule == "paper" and (p.env.layout is not None or p.env.maze not in ("umaze", "medium", "large")):
+        raise ConfigError(
+            f"{where}.discriminate.rule 'paper' has thresholds for umaze, medium and large only; "
+            "for a custom layout set evolution.discriminate.rule to quantile or top_k"
+        )
+    if not 0.0 <= d.quantile <= 1.0:
+        raise ConfigError(f"{where}.discriminate.quantile must be in [0, 1], got {d.quantile}")
+    if d.top_k <= 0:
+        raise ConfigError(f"{where}.discriminate.top_k must be > 0, got {d.top_k}")
+    if f.steps_fraction <= 0:
+        raise ConfigError(f"{where}.finetune.steps_fraction must be > 0, got {f.steps_fraction}")
+    if not 0.0 <= f.expert_weight < 1.0:
+        raise ConfigError(f"{where}.finetune.expert_weight must be in [0, 1), got {f.expert_weight}")
 
 
 def _get(p: Params, dotted: str) -> Any:

@@ -9,6 +9,7 @@ from adaptdiffuser.checkpoint import ModelBundle
 from adaptdiffuser.diffusion.samplers import Sampler
 from adaptdiffuser.envs.base import PlanningEnv
 from adaptdiffuser.evaluation import Controller
+from adaptdiffuser.seeding import derive_seed
 
 
 class Planner:
@@ -69,7 +70,7 @@ class PlannerController(Controller):
     def act(self, envs, obs, t):
         if t == 0 or (self.replan_every and t % self.replan_every == 0):
             goals = np.stack([env.goal_state() for env in envs])
-            seed = int(np.random.SeedSequence([self.seed, self.episodes[0], t]).generate_state(1)[0])
+            seed = derive_seed(self.seed, self.episodes[0], t)
             plans = self.planner.plan(obs, goals, seed=seed)
             obs_part = plans[:, :, self.planner.act_dim :]
             self.followers = [PlanFollower(env, p) for env, p in zip(envs, obs_part, strict=True)]

@@ -1,8 +1,9 @@
-"""Pictures: a plan and its execution in the environment, and a training-loss curve."""
+"""Pictures: a plan and its execution, a training-loss curve, the discriminator's histograms, score by phase."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -12,6 +13,9 @@ import numpy as np  # noqa: E402
 
 from adaptdiffuser.envs.base import PlanningEnv  # noqa: E402
 from adaptdiffuser.io import atomic_path  # noqa: E402
+
+if TYPE_CHECKING:
+    from adaptdiffuser.evolution.discriminator import Judgement
 
 
 def save_plan_picture(
@@ -27,9 +31,7 @@ def save_plan_picture(
     env.draw(ax, plan=plan, executed=executed, goal=goal)
     ax.set_title(title, fontsize=9)
     ax.legend(loc="lower right", fontsize=6)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
+    _save(fig, path)
 
 
 def save_loss_curve(history: list[tuple[int, float]], path: str | Path) -> None:
@@ -40,6 +42,44 @@ def save_loss_curve(history: list[tuple[int, float]], path: str | Path) -> None:
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.set_yscale("log")
+    _save(fig, path)
+
+
+def _save(fig: plt.Figure, path: str | Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
     plt.close(fig)
+
+
+def save_discriminator_histograms(judgement: Judgement, max_error: float, path: str | Path, title: str) -> None:
+    """One PNG, two panels: the worst tracking error of each generated plan (with the rejection threshold),
+    and the real return of those that passed tracking, kept ones highlighted."""
+    trajectories = judgement.trajectories
+    errors = np.array([t.max_error for t in trajectories])
+    returns = np.array([t.total_reward for t in trajectories])
+    passed = judgement.passed_tracking
+    kept = np.zeros(len(trajectories), dtype=bool)
+    kept[judgement.kept] = True
+    fig, (left, right) = plt.subplots(1, 2, figsize=(8, 3))
+    left.hist(errors, bins=30, color="tab:gray")
+    left.axvline(max_error, color="tab:red", linestyle="--", label=f"threshold {max_error:g}")
+    left.set_xlabel("max tracking error")
+    left.set_ylabel("plans")
+    left.legend(fontsize=7)
+    bins = np.histogram_bin_edges(returns, bins=30)
+    right.hist(returns[passed & ~kept], bins=bins, color="tab:gray", label="passed tracking, not kept")
+    right.hist(returns[kept], bins=bins, color="tab:green", alpha=0.8, label="kept")
+    right.set_xlabel("real return over the plan")
+    right.legend(fontsize=7)
+    fig.suptitle(title, fontsize=9)
+    _save(fig, path)
+
+
+def save_score_by_phase(phases: list[int], means: list[float], stderrs: list[float], path: str | Path) -> None:
+    """One PNG: normalized score of each phase with standard-error bars (phase 0 is the Diffuser baseline)."""
+    fig, ax = plt.subplots(figsize=(4, 3))
+    ax.errorbar(phases, means, yerr=stderrs, marker="o", capsize=4)
+    ax.set_xticks(phases)
+    ax.set_xlabel("phase (0 = Diffuser)")
+    ax.set_ylabel("normalized score")
+    _save(fig, path)

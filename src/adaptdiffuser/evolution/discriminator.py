@@ -9,8 +9,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from tqdm import tqdm
 
+from adaptdiffuser.config import DiscriminateParams
 from adaptdiffuser.envs.base import PlanningEnv
+from adaptdiffuser.errors import StageError
 from adaptdiffuser.planning import PlanFollower
 
 
@@ -69,6 +72,24 @@ def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | 
     )
 
 
+def planned_trajectory(
+    env: PlanningEnv, planned_states: np.ndarray, planned_actions: np.ndarray, goal: np.ndarray | None = None
+) -> TrackedTrajectory:
+    """A plan taken at its word, without the simulator (the no-discriminator ablation): the planned states and
+    actions, zero tracking error, and the protocol reward of each planned state."""
+    if goal is not None:
+        env.set_goal_state(goal)
+    rewards = np.array([env.reward(s) for s in planned_states], dtype=np.float64)
+    hits = np.flatnonzero(rewards > 0)
+    return TrackedTrajectory(
+        observations=np.asarray(planned_states),
+        actions=np.asarray(planned_actions).reshape(len(planned_states), env.act_dim),
+        errors=np.zeros(len(planned_states) - 1),
+        rewards=rewards,
+        steps_to_goal=int(hits[0]) if len(hits) else -1,
+    )
+
+
 def passes_tracking(tracked: TrackedTrajectory, threshold: float) -> bool:
     """Dynamics consistency: every executed state stays within ``threshold`` of the planned one."""
     return tracked.max_error <= threshold
@@ -114,3 +135,78 @@ def select_top_k(scores: np.ndarray, k: int) -> np.ndarray:
     if k <= 0:
         raise ValueError(f"k must be positive, got {k}")
     return np.argsort(-np.asarray(scores, dtype=np.float64), kind="stable")[:k]
+
+
+class NothingSelectedError(StageError):
+    """The discriminator kept no trajectory, so there is nothing to fine-tune on."""
+
+
+@dataclass
+class Judgement:
+    """The discriminator's verdict on generated plans: the trajectories it judged (executed, or planned when
+    tracking is off), which passed tracking, and the indices kept, best first where the rule ranks."""
+
+    trajectories: list[TrackedTrajectory]
+    passed_tracking: np.ndarray
+    kept: np.ndarray
+
+    def report(self) -> dict[str, float | int]:
+        """Counts and distributions for the stage report and ``metrics/summary.json``."""
+        n = len(self.trajectories)
+        passed = int(self.passed_tracking.sum())
+        mean_errors = np.array([t.mean_error for t in self.trajectories])
+        returns = np.array([t.total_reward for t in self.trajectories])
+        return {
+            "generated": n,
+            "rejected_tracking": n - passed,
+            "rejected_reward": passed - len(self.kept),
+            "kept": len(self.kept),
+            "kept_fraction": len(self.kept) / n if n else 0.0,
+            "tracking_error_mean": float(mean_errors.mean()) if n else 0.0,
+            "return_mean": float(returns.mean()) if n else 0.0,
+            "return_mean_kept": float(returns[self.kept].mean()) if len(self.kept) else 0.0,
+        }
+
+
+def select(
+    trajectories: list[TrackedTrajectory], candidates: np.ndarray, cfg: DiscriminateParams, maze: str
+) -> np.ndarray:
+    """Indices (among ``candidates``) kept by the rule in ``cfg``, scored by real reward ``R`` and length ``L``
+    (the number of states, that is the model's horizon)."""
+    candidates = np.asarray(candidates, dtype=np.int64)
+    if candidates.size == 0:
+        return candidates
+    returns = np.array([trajectories[i].total_reward for i in candidates])
+    if cfg.rule == "paper":
+        rule = PAPER_MAZE_RULES[maze]
+        keep = [rule.keeps(r, len(trajectories[i].observations)) for i, r in zip(candidates, returns, strict=True)]
+        return candidates[np.flatnonzero(keep)]
+    if cfg.rule == "quantile":
+        return candidates[select_by_quantile(returns, cfg.quantile)]
+    if cfg.rule == "top_k":
+        return candidates[select_top_k(returns, cfg.top_k)]
+    raise ValueError(f"unknown selection rule {cfg.rule!r}")
+
+
+def discriminate(
+    env: PlanningEnv,
+    states: list[np.ndarray],
+    actions: list[np.ndarray],
+    goals: np.ndarray,
+    cfg: DiscriminateParams,
+    maze: str,
+    progress: bool = True,
+) -> Judgement:
+    """Judge generated plans: track each in the simulator (or, with ``cfg.tracking`` off, take it as planned),
+    reject those whose tracking error exceeds ``cfg.max_error``, and select among the rest by ``cfg.rule``."""
+    judged = []
+    for plan_states, plan_actions, goal in tqdm(
+        list(zip(states, actions, goals, strict=True)), desc="discriminate", disable=not progress, mininterval=2.0
+    ):
+        if cfg.tracking:
+            judged.append(track_plan(env, plan_states, goal))
+        else:
+            judged.append(planned_trajectory(env, plan_states, plan_actions, goal))
+    passed = np.array([passes_tracking(t, cfg.max_error) for t in judged], dtype=bool)
+    kept = select(judged, np.flatnonzero(passed), cfg, maze)
+    return Judgement(trajectories=judged, passed_tracking=passed, kept=kept)

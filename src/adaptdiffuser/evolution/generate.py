@@ -1,5 +1,5 @@
-"""Generation of synthetic data: batched goal-conditioned plans for many tasks, and the kept (executed)
-trajectories as a dataset in the project's schema, with the task each one was made for."""
+"""Generation of synthetic data: batched goal-conditioned plans for many tasks, and trajectories for those tasks
+as a dataset in the project's schema, each row saying which task (start, goal) it was made for."""
 
 from __future__ import annotations
 
@@ -8,10 +8,13 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
 from adaptdiffuser.evolution.discriminator import TrackedTrajectory
 from adaptdiffuser.evolution.tasks import NavigationTasks
 from adaptdiffuser.planning import Planner
+from adaptdiffuser.seeding import derive_seed
+
+TASK_COLUMNS = ("task_id", "task_start", "task_goal")
 
 
 def generate_plans(
@@ -24,39 +27,62 @@ def generate_plans(
     plans = []
     for b, first in enumerate(tqdm(range(0, len(tasks), batch_size), desc="generate", disable=not progress)):
         rows = slice(first, first + batch_size)
-        batch_seed = int(np.random.SeedSequence([seed, b]).generate_state(1)[0])
-        plans.append(planner.plan(tasks.starts[rows], tasks.goals[rows], seed=batch_seed))
+        plans.append(planner.plan(tasks.starts[rows], tasks.goals[rows], seed=derive_seed(seed, b)))
     return np.concatenate(plans)
 
 
-def synthetic_trajectories(
-    tracked: list[TrackedTrajectory], tasks: NavigationTasks, keep: np.ndarray, env: str, generator: dict[str, Any]
+def task_trajectories(
+    trajectories: list[TrackedTrajectory],
+    tasks: NavigationTasks,
+    task_ids: np.ndarray,
+    env: str,
+    generator: dict[str, Any],
 ) -> Trajectories:
-    """The kept executed trajectories as one dataset (``source = synthetic``); each row carries its task in the
-    extra columns ``task_id``, ``task_start`` and ``task_goal``."""
-    keep = np.asarray(keep, dtype=np.int64)
-    if keep.size == 0:
-        raise ValueError("no trajectory was kept; nothing to write")
-    parts = [tracked[i] for i in keep]
-    obs_dim = parts[0].observations.shape[1]
-    act_dim = parts[0].actions.shape[1]
-    lengths = [len(p.observations) for p in parts]
+    """Trajectories made for tasks as one dataset (``source = synthetic``): ``trajectories[i]`` belongs to task
+    ``task_ids[i]``, which each of its rows records in the extra columns ``task_id``, ``task_start`` and
+    ``task_goal``."""
+    task_ids = np.asarray(task_ids, dtype=np.int64)
+    if len(trajectories) == 0:
+        raise ValueError("no trajectories; nothing to write")
+    if len(trajectories) != len(task_ids):
+        raise ValueError(f"{len(trajectories)} trajectories but {len(task_ids)} task ids")
+    obs_dim = trajectories[0].observations.shape[1]
+    act_dim = trajectories[0].actions.shape[1]
+    lengths = [len(t.observations) for t in trajectories]
     n = sum(lengths)
-    episode_id = np.repeat(np.arange(len(parts)), lengths)
     timeout = np.zeros(n, dtype=bool)
     timeout[np.cumsum(lengths) - 1] = True
     return Trajectories(
-        episode_id=episode_id,
+        episode_id=np.repeat(np.arange(len(trajectories)), lengths),
         step=np.concatenate([np.arange(k) for k in lengths]),
-        observation=np.concatenate([p.observations for p in parts]),
-        action=np.concatenate([p.actions for p in parts]),
-        reward=np.concatenate([p.rewards for p in parts]).astype(np.float32),
+        observation=np.concatenate([t.observations for t in trajectories]),
+        action=np.concatenate([t.actions for t in trajectories]),
+        reward=np.concatenate([t.rewards for t in trajectories]).astype(np.float32),
         terminal=np.zeros(n, dtype=bool),
         timeout=timeout,
         metadata=make_metadata(env, obs_dim, act_dim, "synthetic", generator),
         extra={
-            "task_id": np.repeat(keep, lengths),
-            "task_start": np.repeat(tasks.starts[keep], lengths, axis=0).astype(np.float32),
-            "task_goal": np.repeat(tasks.goals[keep], lengths, axis=0).astype(np.float32),
+            "task_id": np.repeat(task_ids, lengths),
+            "task_start": np.repeat(tasks.starts[task_ids], lengths, axis=0).astype(np.float32),
+            "task_goal": np.repeat(tasks.goals[task_ids], lengths, axis=0).astype(np.float32),
         },
     )
+
+
+def split_task_trajectories(traj: Trajectories) -> tuple[list[np.ndarray], list[np.ndarray], NavigationTasks]:
+    """Inverse of :func:`task_trajectories` for plans: per-episode states ``[H, obs]`` and actions ``[H, act]``
+    and the task of each episode (cells are not stored, so they come back empty)."""
+    missing = [name for name in TASK_COLUMNS if name not in traj.extra]
+    if missing:
+        raise SchemaError(f"synthetic trajectory file lacks task column {missing[0]!r}")
+    episodes = traj.episodes()
+    firsts = np.array([ep.start for ep in episodes], dtype=np.int64)
+    tasks = NavigationTasks(
+        starts=np.asarray(traj.extra["task_start"], dtype=np.float64)[firsts],
+        goals=np.asarray(traj.extra["task_goal"], dtype=np.float64)[firsts],
+        start_cells=np.zeros((0, 2), dtype=np.int64),
+        goal_cells=np.zeros((0, 2), dtype=np.int64),
+    )
+    states = [traj.observation[ep].astype(np.float64) for ep in episodes]
+    actions = [traj.action[ep].astype(np.float64) for ep in episodes]
+    return states, actions, tasks

@@ -24,8 +24,31 @@ def plots_dir(phase: int) -> Path:
     return Path(f"plots/phase{phase}")
 
 
+PHASE_METRICS = Path("metrics/phases")
+SCORE_TABLE = Path("metrics/score_by_phase.csv")
+REPORT_PLOT = Path("plots/report/score_by_phase.png")
+
+
 def phase_metrics_path(phase: int) -> Path:
-    return Path(f"metrics/phase{phase}.json")
+    """Evaluation metrics of a phase (written by its evaluate stage)."""
+    return PHASE_METRICS / f"phase{phase}.json"
+
+
+def discriminator_metrics_path(phase: int) -> Path:
+    """The discriminator report of an evolution phase (written by its discriminate stage)."""
+    return PHASE_METRICS / f"phase{phase}-discriminator.json"
+
+
+def generated_path(phase: int) -> Path:
+    return Path(f"data/phase{phase}/generated.parquet")
+
+
+def selected_path(phase: int) -> Path:
+    return Path(f"data/phase{phase}/selected.parquet")
+
+
+def discriminator_plot_path(phase: int) -> Path:
+    return Path(f"plots/discriminator/phase{phase}.png")
 
 
 def resolve_device(name: str) -> torch.device:

@@ -6,29 +6,38 @@ from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
+import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import make_bundle, save_bundle
 from adaptdiffuser.config import Params
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
-from adaptdiffuser.data.schema import read_trajectories
-from adaptdiffuser.data.windows import WindowDataset, joint_array
+from adaptdiffuser.data.schema import Trajectories, read_trajectories
+from adaptdiffuser.data.windows import WindowDataset, joint_array, subset_episodes
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.stages.common import EXPERT_DATA, file_digest, model_dir
 from adaptdiffuser.tracking import stage_run
 from adaptdiffuser.training import fingerprint, train
 
 
-def run_pretrain(params: Params, root: Path, device: torch.device, progress: bool = True) -> Path:
-    """Stage ``pretrain`` (phase 0, the Diffuser baseline): train on expert data, write ``models/phase0``."""
+def expert_training_data(params: Params, root: Path) -> tuple[Trajectories, dict[str, str | float]]:
+    """The expert episodes the models train on (``pretrain.expert_fraction`` of them, chosen with
+    ``pretrain.seed``, so every phase sees the same subset) and how to name them in logs."""
     data_path = root / EXPERT_DATA
     traj = read_trajectories(data_path)
-    digest = file_digest(data_path)
+    fraction = params.pretrain.expert_fraction
+    subset = subset_episodes(traj, fraction, np.random.default_rng(params.pretrain.seed))
+    return subset, {"path": str(EXPERT_DATA), "sha256": file_digest(data_path), "fraction": fraction}
+
+
+def run_pretrain(params: Params, root: Path, device: torch.device, progress: bool = True) -> Path:
+    """Stage ``pretrain`` (phase 0, the Diffuser baseline): train on expert data, write ``models/phase0``."""
+    traj, expert = expert_training_data(params, root)
     logged = {
         "model": params.section("model"),
         "diffusion": params.section("diffusion"),
         "pretrain": params.section("pretrain"),
-        "data": {"path": str(EXPERT_DATA), "sha256": digest},
+        "data": {"expert": expert},
     }
     with stage_run(params.task, "pretrain", 0, logged, root):
         torch.manual_seed(params.pretrain.seed)
@@ -47,7 +56,11 @@ def run_pretrain(params: Params, root: Path, device: torch.device, progress: boo
         )
         dataset = WindowDataset(traj, params.diffusion.horizon, normalizer)
         mlflow.log_metrics(
-            {"windows": len(dataset), "parameters": sum(p.numel() for p in bundle.diffusion.parameters())}
+            {
+                "windows": len(dataset),
+                "expert_episodes": len(traj.episodes()),
+                "parameters": sum(p.numel() for p in bundle.diffusion.parameters()),
+            }
         )
         resume = root / "models" / ".resume" / "phase0.pt"
         resume.parent.mkdir(parents=True, exist_ok=True)

@@ -5,14 +5,20 @@ from __future__ import annotations
 from pathlib import Path
 
 from adaptdiffuser.io import read_json, write_json
-from adaptdiffuser.stages.common import SUMMARY, phase_metrics_path
+from adaptdiffuser.stages.common import SUMMARY, discriminator_metrics_path, phase_metrics_path
+
+SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean")
 
 
 def run_summarize(root: Path, phases: list[int]) -> dict:
-    """Stage ``summarize``: merge the per-phase metrics into ``metrics/summary.json``."""
-    summary = {
-        f"phase_{k}": read_json(root / phase_metrics_path(k), f"metrics of phase {k} (run its evaluate stage)")
-        for k in phases
-    }
+    """Merge each phase's evaluation metrics (and, for phases >= 1, its discriminator counts) into
+    ``metrics/summary.json`` as ``{"phase_k": {"navigation": ..., "discriminator": ...}}``."""
+    summary = {}
+    for k in phases:
+        entry = read_json(root / phase_metrics_path(k), f"metrics of phase {k} (run its evaluate stage)")
+        if k > 0:
+            report = read_json(root / discriminator_metrics_path(k), f"discriminator report of phase {k}")
+            entry["discriminator"] = {key: report[key] for key in SUMMARY_DISCRIMINATOR_KEYS}
+        summary[f"phase_{k}"] = entry
     write_json(root / SUMMARY, summary)
     return summary

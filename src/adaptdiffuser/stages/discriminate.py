@@ -1,0 +1,67 @@
+"""Stage ``discriminate@phase<k>``: track the generated plans in the simulator, reject and select."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+
+import mlflow
+
+from adaptdiffuser.config import Params
+from adaptdiffuser.data.schema import read_trajectories, write_trajectories
+from adaptdiffuser.envs.factory import make_env
+from adaptdiffuser.evolution.discriminator import NothingSelectedError, discriminate
+from adaptdiffuser.evolution.generate import split_task_trajectories, task_trajectories
+from adaptdiffuser.io import write_json
+from adaptdiffuser.plots import save_discriminator_histograms
+from adaptdiffuser.stages.common import (
+    discriminator_metrics_path,
+    discriminator_plot_path,
+    file_digest,
+    generated_path,
+    selected_path,
+)
+from adaptdiffuser.tracking import stage_run
+
+
+def run_discriminate(params: Params, root: Path, phase: int, progress: bool = True) -> dict:
+    """Judge ``data/phase<k>/generated.parquet``; write the kept executed trajectories to
+    ``data/phase<k>/selected.parquet``, the report to ``metrics/phases`` and histograms to ``plots/``.
+
+    Raises :class:`NothingSelectedError` (and writes no dataset) when nothing is kept."""
+    cfg = params.phase(phase).discriminate
+    source = root / generated_path(phase)
+    generated = read_trajectories(source)
+    logged = {
+        "discriminate": asdict(cfg),
+        "data": {"generated": {"path": str(generated_path(phase)), "sha256": file_digest(source)}},
+        "planner": {
+            "tracking_p_gain": params.planner.tracking_p_gain,
+            "tracking_d_gain": params.planner.tracking_d_gain,
+        },
+    }
+    with stage_run(params.task, "discriminate", phase, logged, root):
+        states, actions, tasks = split_task_trajectories(generated)
+        env = make_env(params)
+        judgement = discriminate(env, states, actions, tasks.goals, cfg, params.env.maze, progress=progress)
+        report = judgement.report()
+        mlflow.log_metrics({f"discriminator.{k}": float(v) for k, v in report.items()})
+        picture = root / discriminator_plot_path(phase)
+        save_discriminator_histograms(
+            judgement, cfg.max_error, picture, f"phase {phase}: {report['kept']} of {report['generated']} kept"
+        )
+        mlflow.log_artifact(str(picture), artifact_path="discriminator")
+        if not len(judgement.kept):
+            raise NothingSelectedError(
+                f"phase {phase}: the discriminator kept none of {report['generated']} generated trajectories "
+                f"({report['rejected_tracking']} failed tracking with max_error={cfg.max_error}, "
+                f"{report['rejected_reward']} failed the {cfg.rule!r} rule); not fine-tuning on nothing. "
+                "Loosen evolution.discriminate (max_error, rule: quantile) or generate more tasks."
+            )
+        kept = [judgement.trajectories[i] for i in judgement.kept]
+        generator = {"stage": "discriminate", "phase": phase, "source": str(generated_path(phase)), **asdict(cfg)}
+        selected = task_trajectories(kept, tasks, judgement.kept, params.task, generator)
+        out = root / selected_path(phase)
+        write_trajectories(out, selected)
+        write_json(root / discriminator_metrics_path(phase), report)
+    return report
