@@ -22,12 +22,13 @@ from adaptdiffuser.tracking import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
 PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
-PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate")
+PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "evaluate-coin")
 STAGES = [
     "collect",
     "reference",
     "pretrain",
     "evaluate-phase0",
+    "evaluate-coin-phase0",
     *(f"{stage}@phase{k}" for k in (1, 2) for stage in PHASE_STAGES),
     "summarize",
     "report",
@@ -79,8 +80,11 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
 
     summary = json.loads((smoke_repo / "metrics/summary.json").read_text())
     assert set(summary) == {"phase_0", "phase_1", "phase_2"}
-    assert set(summary["phase_0"]) == {"navigation"}
+    assert set(summary["phase_0"]) == {"navigation", "gold_coin"}
     for k in (0, 1, 2):
+        coin = summary[f"phase_{k}"]["gold_coin"]
+        assert {"pick_rate", "goal_rate", "both_rate", "collision_rate", "n_episodes"} <= set(coin)
+        assert coin["n_episodes"] == 4 and 0.0 <= coin["both_rate"] <= coin["pick_rate"] <= 1.0
         nav = summary[f"phase_{k}"]["navigation"]
         assert set(nav) == {"score_mean", "score_stderr", "return_mean", "n_episodes", "success_rate"}
         assert nav["n_episodes"] == 3 and 0.0 <= nav["success_rate"] <= 1.0
@@ -121,9 +125,13 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     runs = client.search_runs([experiment.experiment_id])
     by_stage = {(run.data.tags["stage"], run.data.tags["phase"]): run for run in runs}
     assert len(by_stage) == len(runs)
-    assert set(by_stage) == {("collect", "0"), ("reference", "0"), ("pretrain", "0"), ("evaluate", "0")} | {
-        (stage, str(k)) for k in (1, 2) for stage in PHASE_STAGES
-    }
+    assert set(by_stage) == {
+        ("collect", "0"),
+        ("reference", "0"),
+        ("pretrain", "0"),
+        ("evaluate", "0"),
+        ("evaluate-coin", "0"),
+    } | {(stage, str(k)) for k in (1, 2) for stage in PHASE_STAGES}
     for run in runs:
         assert run.info.status == "FINISHED" and len(run.data.tags["git_commit"]) == 40
     pretrain = by_stage["pretrain", "0"]
@@ -136,6 +144,9 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
         evaluate = by_stage["evaluate", k]
         assert "navigation.score_mean" in evaluate.data.metrics
         assert [a.path for a in client.list_artifacts(evaluate.info.run_id, "plans")] == ["plans/plan_00.png"]
+        coin = by_stage["evaluate-coin", k]
+        assert coin.data.params["alpha"] == "10.0" and "gold_coin.both_rate" in coin.data.metrics
+        assert [a.path for a in client.list_artifacts(coin.info.run_id, "gold_coin")] == ["gold_coin/coin_00.png"]
     # a fine-tuned model's run names exactly the data that trained it
     finetune = by_stage["finetune", "2"]
     for name in ("expert", "synthetic.phase1", "synthetic.phase2"):
@@ -156,9 +167,10 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
         params.write_text(original.replace("episodes: 3", "episodes: 2"))
         # a dry run lists the stages whose own deps or params changed (summarize follows if metrics change)
         evaluations = {"evaluate-phase0", "evaluate@phase1", "evaluate@phase2"}
+        coin = {"evaluate-coin-phase0", "evaluate-coin@phase1", "evaluate-coin@phase2"}
         assert _dry_run(smoke_repo) == {"reference"} | evaluations
         params.write_text(original.replace("  sampler_steps: 4\n  replan_every", "  sampler_steps: 2\n  replan_every"))
-        assert _dry_run(smoke_repo) == evaluations
+        assert _dry_run(smoke_repo) == evaluations | coin
         # a phase-2 param reruns phase 2 only (and the summary that lists the phases)
         params.write_text(
             original.replace("phase2:\n    previous: 1", "phase2:\n    previous: 1\n    generate: {tasks: 8}")
@@ -182,7 +194,7 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles() -> None:
         graph = repo.index.graph  # edges point from a stage to the stages it depends on
         upstream = {stage.addressing: {dep.addressing for dep in graph.successors(stage)} for stage in graph.nodes}
         assert nx.is_directed_acyclic_graph(graph)
-    expected = {"collect", "reference", "pretrain", "evaluate-phase0", "summarize", "report"}
+    expected = {"collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0", "summarize", "report"}
     expected |= {f"{stage}@{name}" for name in params.phase_names for stage in PHASE_STAGES}
     assert set(upstream) == expected
     for phase in params.phases:
@@ -192,11 +204,26 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles() -> None:
         assert upstream[f"discriminate@{name}"] == {f"generate@{name}"}
         assert upstream[f"finetune@{name}"] == {"collect", source, f"discriminate@{name}"}
         assert upstream[f"evaluate@{name}"] == {f"finetune@{name}", "reference"}
-        assert {f"evaluate@{name}", f"discriminate@{name}"} <= upstream["summarize"]
-    assert upstream["summarize"] == {"evaluate-phase0"} | {
-        f"{stage}@{name}" for name in params.phase_names for stage in ("evaluate", "discriminate")
+        assert upstream[f"evaluate-coin@{name}"] == {f"finetune@{name}", "reference"}
+    assert upstream["summarize"] == {"evaluate-phase0", "evaluate-coin-phase0"} | {
+        f"{stage}@{name}" for name in params.phase_names for stage in ("evaluate", "evaluate-coin", "discriminate")
     }
     assert upstream["report"] == {"summarize"}
+
+
+@pytest.mark.e2e
+def test_dvc_exp_run_alpha_reruns_only_what_alpha_affects(smoke_repo: Path, tmp_path: Path) -> None:
+    repo = tmp_path / "exp"
+    shutil.copytree(smoke_repo, repo)
+    _run(["git", "add", "-A"], repo)
+    _run(["git", "commit", "-qm", "baseline run"], repo)
+    out = _run(["dvc", "exp", "run", "-n", "alpha50", "-S", "alpha=50"], repo)
+    ran = {stage for stage in STAGES if f"Running stage '{stage}'" in out}
+    # alpha guides coin tasks in generation and the coin evaluation; everything downstream of them follows
+    assert {"collect", "reference", "pretrain", "evaluate-phase0"}.isdisjoint(ran)
+    assert {"generate@phase1", "generate@phase2", "evaluate-coin-phase0", "evaluate-coin@phase2"} <= ran
+    shown = json.loads(_run(["dvc", "exp", "show", "--json"], repo))
+    assert "alpha50" in json.dumps(shown) and "both_rate" in json.dumps(shown)
 
 
 @pytest.mark.e2e

@@ -99,6 +99,25 @@ def evaluate(
     )
 
 
+@app.command("evaluate-coin")
+def evaluate_coin(
+    params: ParamsPath = Path("params.yaml"),
+    phase: Annotated[int, PhaseOption] = 0,
+    device: Device = "auto",
+    progress: Progress = True,
+) -> None:
+    """Evaluate a phase's model on the unseen gold-coin task (guidance scale: top-level alpha)."""
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
+
+    p = _params(params)
+    gold = _guarded(lambda: run_evaluate_coin(p, Path.cwd(), phase, resolve_device(device), progress=progress))
+    typer.echo(
+        f"phase {phase}, alpha {p.alpha:g}: coin both-rate {gold['both_rate']:.2f} +- {gold['both_rate_stderr']:.2f} "
+        f"(pick {gold['pick_rate']:.2f}, goal {gold['goal_rate']:.2f}, {gold['n_episodes']} cases)"
+    )
+
+
 @app.command()
 def generate(
     phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), device: Device = "auto", progress: Progress = True

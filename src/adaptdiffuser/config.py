@@ -7,6 +7,7 @@ work starts, with a message naming the key (for example ``pretrain.steps``).
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 import types
 import typing
@@ -85,6 +86,15 @@ class PretrainParams:
 
 
 @dataclass(frozen=True)
+class GoldCoinParams:
+    cases_per_kind: int = 10
+    seed: int = 2000
+    radius: float = 0.5
+    batch_size: int = 50
+    pictures: int = 3
+
+
+@dataclass(frozen=True)
 class GenerateParams:
     tasks: int = 1024
     batch_size: int = 128
@@ -92,6 +102,7 @@ class GenerateParams:
     sampler: str = "ddim"
     sampler_steps: int = 16
     cell_spread: float = 0.4
+    coin_fraction: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -158,6 +169,8 @@ class Params:
     planner: PlannerParams = field(default_factory=PlannerParams)
     evaluate: EvaluateParams = field(default_factory=EvaluateParams)
     evolution: EvolutionParams = field(default_factory=EvolutionParams)
+    gold_coin: GoldCoinParams = field(default_factory=GoldCoinParams)
+    alpha: float = 0.0
     phases: tuple[PhaseParams, ...] = ()
 
     @property
@@ -286,6 +299,10 @@ def validate(p: Params) -> None:
     _positive(p, "evaluate.episodes", "evaluate.batch_size")
     if not 0.0 < p.pretrain.expert_fraction <= 1.0:
         raise ConfigError(f"pretrain.expert_fraction must be in (0, 1], got {p.pretrain.expert_fraction}")
+    _positive(p, "gold_coin.cases_per_kind", "gold_coin.radius", "gold_coin.batch_size")
+    _non_negative(p, "gold_coin.pictures")
+    if not math.isfinite(p.alpha):
+        raise ConfigError(f"alpha must be a finite number, got {p.alpha}")
     for phase in p.phases:
         _validate_phase(p, phase)
 
@@ -302,6 +319,8 @@ def _validate_phase(p: Params, phase: PhaseParams) -> None:
         raise ConfigError(
             f"{where}.generate.sampler_steps={g.sampler_steps} must be in 1..diffusion.n_steps={p.diffusion.n_steps}"
         )
+    if not 0.0 <= g.coin_fraction <= 1.0:
+        raise ConfigError(f"{where}.generate.coin_fraction must be in [0, 1], got {g.coin_fraction}")
     if not 0.0 <= g.cell_spread < 0.5:
         raise ConfigError(f"{where}.generate.cell_spread must be in [0, 0.5) (half a cell), got {g.cell_spread}")
     if d.max_error <= 0:
@@ -324,8 +343,10 @@ def _validate_phase(p: Params, phase: PhaseParams) -> None:
 
 
 def _get(p: Params, dotted: str) -> Any:
-    section, key = dotted.split(".")
-    return getattr(getattr(p, section), key)
+    value: Any = p
+    for part in dotted.split("."):
+        value = getattr(value, part)
+    return value
 
 
 def _positive(p: Params, *keys: str, allow_none: bool = False) -> None:

@@ -11,6 +11,7 @@ from tqdm import tqdm
 from adaptdiffuser.envs.base import PlanningEnv
 
 EnvFactory = Callable[[], PlanningEnv]
+ResetFn = Callable[[PlanningEnv, int], np.ndarray]
 
 
 def episode_rng(seed: int, episode: int) -> np.random.Generator:
@@ -93,15 +94,22 @@ def run_episodes(
     batch_size: int,
     desc: str = "evaluate",
     progress: bool = True,
+    reset: ResetFn | None = None,
 ) -> EpisodeBatchResult:
-    """Run ``n_episodes`` protocol episodes (starts from :func:`episode_rng`) in batches of ``batch_size``."""
+    """Run ``n_episodes`` protocol episodes in batches of ``batch_size``; episode ``i`` starts from
+    ``reset(env, i)``, by default the protocol's random start drawn from :func:`episode_rng`."""
+    if reset is None:
+
+        def reset(env: PlanningEnv, episode: int) -> np.ndarray:
+            return env.reset(episode_rng(seed, episode))
+
     envs = [make_env() for _ in range(min(batch_size, n_episodes))]
     result = EpisodeBatchResult()
     bar = tqdm(total=n_episodes, desc=desc, disable=not progress)
     for first in range(0, n_episodes, batch_size):
         episodes = list(range(first, min(first + batch_size, n_episodes)))
         batch_envs = envs[: len(episodes)]
-        obs = np.stack([env.reset(episode_rng(seed, ep)) for env, ep in zip(batch_envs, episodes, strict=True)])
+        obs = np.stack([reset(env, ep) for env, ep in zip(batch_envs, episodes, strict=True)])
         horizon = batch_envs[0].episode_steps
         trace = np.empty((horizon + 1, len(episodes), obs.shape[1]))
         trace[0] = obs

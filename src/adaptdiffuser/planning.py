@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import ModelBundle
+from adaptdiffuser.diffusion.guidance import Guidance, Objective
 from adaptdiffuser.diffusion.samplers import Sampler
 from adaptdiffuser.envs.base import PlanningEnv
 from adaptdiffuser.evaluation import Controller
@@ -28,11 +31,16 @@ class Planner:
         normed = self.normalizer.normalize(padded)[:, self.act_dim :]
         return torch.as_tensor(normed, dtype=torch.float32, device=self.device)
 
-    def plan(self, starts: np.ndarray, goals: np.ndarray, seed: int) -> np.ndarray:
-        """Plans ``[batch, horizon, act_dim + obs_dim]`` in raw units, from ``starts`` to ``goals``."""
+    def guidance(self, objective: Objective, alpha: float) -> Guidance:
+        """Guidance by ``objective`` (a function of raw states) with scale ``alpha``, for :meth:`plan`."""
+        return Guidance(objective, alpha, lambda x: self.normalizer.unnormalize(x)[..., self.act_dim :])
+
+    def plan(self, starts: np.ndarray, goals: np.ndarray, seed: int, guidance: Guidance | None = None) -> np.ndarray:
+        """Plans ``[batch, horizon, act_dim + obs_dim]`` in raw units, from ``starts`` to ``goals``, optionally
+        guided (see :meth:`guidance`)."""
         conditions = {0: self._normalize_states(starts), self.horizon - 1: self._normalize_states(goals)}
         generator = torch.Generator(device=self.device).manual_seed(int(seed))
-        x = self.sampler.sample(self.model, len(starts), conditions, generator)
+        x = self.sampler.sample(self.model, len(starts), conditions, generator, guidance)
         return self.normalizer.unnormalize(x.double().cpu().numpy())
 
 
@@ -56,12 +64,20 @@ class PlanFollower:
 
 
 class PlannerController(Controller):
-    """Plan at t = 0 (and every ``replan_every`` steps if > 0), follow the plan's states in between."""
+    """Plan at t = 0 (and every ``replan_every`` steps if > 0), follow the plan's states in between;
+    ``guidance_for(episodes)`` gives the guidance of a batch of episodes, if any."""
 
-    def __init__(self, planner: Planner, seed: int, replan_every: int = 0) -> None:
+    def __init__(
+        self,
+        planner: Planner,
+        seed: int,
+        replan_every: int = 0,
+        guidance_for: Callable[[list[int]], Guidance | None] | None = None,
+    ) -> None:
         self.planner = planner
         self.seed = seed
         self.replan_every = replan_every
+        self.guidance_for = guidance_for
 
     def begin(self, envs, obs, episodes):
         self.episodes = episodes
@@ -71,7 +87,8 @@ class PlannerController(Controller):
         if t == 0 or (self.replan_every and t % self.replan_every == 0):
             goals = np.stack([env.goal_state() for env in envs])
             seed = derive_seed(self.seed, self.episodes[0], t)
-            plans = self.planner.plan(obs, goals, seed=seed)
+            guidance = self.guidance_for(self.episodes) if self.guidance_for else None
+            plans = self.planner.plan(obs, goals, seed=seed, guidance=guidance)
             obs_part = plans[:, :, self.planner.act_dim :]
             self.followers = [PlanFollower(env, p) for env, p in zip(envs, obs_part, strict=True)]
             self.plan_time = t

@@ -149,6 +149,7 @@ class Judgement:
     trajectories: list[TrackedTrajectory]
     passed_tracking: np.ndarray
     kept: np.ndarray
+    coin_tasks: np.ndarray | None = None
 
     def report(self) -> dict[str, float | int]:
         """Counts and distributions for the stage report and ``metrics/summary.json``."""
@@ -156,6 +157,7 @@ class Judgement:
         passed = int(self.passed_tracking.sum())
         mean_errors = np.array([t.mean_error for t in self.trajectories])
         returns = np.array([t.total_reward for t in self.trajectories])
+        coin = self.coin_tasks if self.coin_tasks is not None else np.zeros(n, dtype=bool)
         return {
             "generated": n,
             "rejected_tracking": n - passed,
@@ -165,6 +167,8 @@ class Judgement:
             "tracking_error_mean": float(mean_errors.mean()) if n else 0.0,
             "return_mean": float(returns.mean()) if n else 0.0,
             "return_mean_kept": float(returns[self.kept].mean()) if len(self.kept) else 0.0,
+            "coin_generated": int(coin.sum()),
+            "coin_kept": int(coin[self.kept].sum()),
         }
 
 
@@ -188,6 +192,13 @@ def select(
     raise ValueError(f"unknown selection rule {cfg.rule!r}")
 
 
+def picks_coin_then_reaches_goal(trajectory: TrackedTrajectory, coin: np.ndarray, radius: float) -> bool:
+    """The coin-aware reward: some state passes within ``radius`` of ``coin`` and a later (or the same) state
+    is at the goal."""
+    near = np.flatnonzero(np.linalg.norm(trajectory.observations[:, :2] - coin[None, :2], axis=1) <= radius)
+    return bool(len(near)) and bool((trajectory.rewards[near[0] :] > 0).any())
+
+
 def discriminate(
     env: PlanningEnv,
     states: list[np.ndarray],
@@ -195,10 +206,13 @@ def discriminate(
     goals: np.ndarray,
     cfg: DiscriminateParams,
     maze: str,
+    coins: np.ndarray | None = None,
+    coin_radius: float = 0.5,
     progress: bool = True,
 ) -> Judgement:
     """Judge generated plans: track each in the simulator (or, with ``cfg.tracking`` off, take it as planned),
-    reject those whose tracking error exceeds ``cfg.max_error``, and select among the rest by ``cfg.rule``."""
+    reject those whose tracking error exceeds ``cfg.max_error``, and select among the rest: navigation tasks by
+    ``cfg.rule``, coin tasks (a non-NaN row of ``coins``) when they pick the coin and then reach the goal."""
     judged = []
     for plan_states, plan_actions, goal in tqdm(
         list(zip(states, actions, goals, strict=True)), desc="discriminate", disable=not progress, mininterval=2.0
@@ -208,5 +222,10 @@ def discriminate(
         else:
             judged.append(planned_trajectory(env, plan_states, plan_actions, goal))
     passed = np.array([passes_tracking(t, cfg.max_error) for t in judged], dtype=bool)
-    kept = select(judged, np.flatnonzero(passed), cfg, maze)
-    return Judgement(trajectories=judged, passed_tracking=passed, kept=kept)
+    coin_tasks = np.zeros(len(judged), dtype=bool) if coins is None else ~np.isnan(coins).any(axis=1)
+    kept = select(judged, np.flatnonzero(passed & ~coin_tasks), cfg, maze)
+    coin_kept = [
+        i for i in np.flatnonzero(passed & coin_tasks) if picks_coin_then_reaches_goal(judged[i], coins[i], coin_radius)
+    ]
+    kept = np.concatenate([kept, np.asarray(coin_kept, dtype=np.int64)])
+    return Judgement(trajectories=judged, passed_tracking=passed, kept=kept, coin_tasks=coin_tasks)

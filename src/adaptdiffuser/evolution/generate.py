@@ -6,9 +6,11 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
+from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.evolution.discriminator import TrackedTrajectory
 from adaptdiffuser.evolution.tasks import NavigationTasks
 from adaptdiffuser.planning import Planner
@@ -18,17 +20,27 @@ TASK_COLUMNS = ("task_id", "task_start", "task_goal")
 
 
 def generate_plans(
-    planner: Planner, tasks: NavigationTasks, batch_size: int, seed: int, progress: bool = True
+    planner: Planner, tasks: NavigationTasks, batch_size: int, seed: int, alpha: float = 0.0, progress: bool = True
 ) -> np.ndarray:
     """Plans ``[n_tasks, horizon, act_dim + obs_dim]`` (raw units), one per task, sampled in batches; batch
-    ``b`` uses seed ``(seed, b)`` so the result does not depend on what else runs."""
+    ``b`` uses seed ``(seed, b)`` so the result does not depend on what else runs. Tasks with a coin are planned
+    in their own batches, guided toward their coin with scale ``alpha``."""
     if batch_size <= 0:
         raise ValueError(f"batch_size must be positive, got {batch_size}")
-    plans = []
-    for b, first in enumerate(tqdm(range(0, len(tasks), batch_size), desc="generate", disable=not progress)):
-        rows = slice(first, first + batch_size)
-        plans.append(planner.plan(tasks.starts[rows], tasks.goals[rows], seed=derive_seed(seed, b)))
-    return np.concatenate(plans)
+    plans = np.zeros((len(tasks), planner.horizon, planner.model.transition_dim))
+    with_coin = tasks.has_coin()
+    batches = [
+        (rows[i : i + batch_size], coin)
+        for coin, rows in ((False, np.flatnonzero(~with_coin)), (True, np.flatnonzero(with_coin)))
+        for i in range(0, len(rows), batch_size)
+    ]
+    for b, (rows, coin) in enumerate(tqdm(batches, desc="generate", disable=not progress)):
+        guidance = None
+        if coin:
+            coins = torch.as_tensor(tasks.coins[rows], dtype=torch.float32, device=planner.device)
+            guidance = planner.guidance(CoinObjective(coins), alpha)
+        plans[rows] = planner.plan(tasks.starts[rows], tasks.goals[rows], seed=derive_seed(seed, b), guidance=guidance)
+    return plans
 
 
 def task_trajectories(
@@ -39,8 +51,8 @@ def task_trajectories(
     generator: dict[str, Any],
 ) -> Trajectories:
     """Trajectories made for tasks as one dataset (``source = synthetic``): ``trajectories[i]`` belongs to task
-    ``task_ids[i]``, which each of its rows records in the extra columns ``task_id``, ``task_start`` and
-    ``task_goal``."""
+    ``task_ids[i]``, which each of its rows records in the extra columns ``task_id``, ``task_start``,
+    ``task_goal`` and, when the tasks have coins, ``task_coin`` (NaN for tasks without one)."""
     task_ids = np.asarray(task_ids, dtype=np.int64)
     if len(trajectories) == 0:
         raise ValueError("no trajectories; nothing to write")
@@ -52,6 +64,13 @@ def task_trajectories(
     n = sum(lengths)
     timeout = np.zeros(n, dtype=bool)
     timeout[np.cumsum(lengths) - 1] = True
+    extra = {
+        "task_id": np.repeat(task_ids, lengths),
+        "task_start": np.repeat(tasks.starts[task_ids], lengths, axis=0).astype(np.float32),
+        "task_goal": np.repeat(tasks.goals[task_ids], lengths, axis=0).astype(np.float32),
+    }
+    if tasks.coins is not None:
+        extra["task_coin"] = np.repeat(tasks.coins[task_ids], lengths, axis=0).astype(np.float32)
     return Trajectories(
         episode_id=np.repeat(np.arange(len(trajectories)), lengths),
         step=np.concatenate([np.arange(k) for k in lengths]),
@@ -61,11 +80,7 @@ def task_trajectories(
         terminal=np.zeros(n, dtype=bool),
         timeout=timeout,
         metadata=make_metadata(env, obs_dim, act_dim, "synthetic", generator),
-        extra={
-            "task_id": np.repeat(task_ids, lengths),
-            "task_start": np.repeat(tasks.starts[task_ids], lengths, axis=0).astype(np.float32),
-            "task_goal": np.repeat(tasks.goals[task_ids], lengths, axis=0).astype(np.float32),
-        },
+        extra=extra,
     )
 
 
@@ -82,6 +97,7 @@ def split_task_trajectories(traj: Trajectories) -> tuple[list[np.ndarray], list[
         goals=np.asarray(traj.extra["task_goal"], dtype=np.float64)[firsts],
         start_cells=np.zeros((0, 2), dtype=np.int64),
         goal_cells=np.zeros((0, 2), dtype=np.int64),
+        coins=np.asarray(traj.extra["task_coin"], dtype=np.float64)[firsts] if "task_coin" in traj.extra else None,
     )
     states = [traj.observation[ep].astype(np.float64) for ep in episodes]
     actions = [traj.action[ep].astype(np.float64) for ep in episodes]

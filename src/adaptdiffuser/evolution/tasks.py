@@ -1,8 +1,9 @@
-"""Synthetic navigation tasks: random start and goal cells, with random positions inside the start cell."""
+"""Synthetic tasks: random start and goal cells, with random positions inside the start cell, and optionally a
+gold coin to pick up on the way (in a third random cell)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -11,12 +12,20 @@ from adaptdiffuser.envs.maze2d import Maze2D
 
 @dataclass
 class NavigationTasks:
-    """``n`` start states and goal states (goal velocity zero), and the cells they were drawn from."""
+    """``n`` start states and goal states (goal velocity zero), the cells they were drawn from, and optionally
+    coin positions ``[n, 2]`` (NaN rows for tasks without a coin)."""
 
     starts: np.ndarray
     goals: np.ndarray
     start_cells: np.ndarray
     goal_cells: np.ndarray
+    coins: np.ndarray | None = None
+
+    def has_coin(self) -> np.ndarray:
+        """Which tasks carry a coin."""
+        if self.coins is None:
+            return np.zeros(len(self), dtype=bool)
+        return ~np.isnan(self.coins).any(axis=1)
 
     def __len__(self) -> int:
         return len(self.starts)
@@ -43,3 +52,17 @@ def sample_navigation_tasks(env: Maze2D, n: int, rng: np.random.Generator, cell_
         start_cells=start_cells,
         goal_cells=goal_cells,
     )
+
+
+def add_coins(env: Maze2D, tasks: NavigationTasks, fraction: float, rng: np.random.Generator) -> NavigationTasks:
+    """``tasks`` with a coin at the centre of a random free cell (not the start's or the goal's) in the last
+    ``round(fraction * n)`` tasks; the others get NaN coins."""
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"coin fraction must be in [0, 1], got {fraction}")
+    coins = np.full((len(tasks), 2), np.nan)
+    free = [tuple(c) for c in env.layout.free_cells]
+    for i in range(len(tasks) - round(fraction * len(tasks)), len(tasks)):
+        taken = {tuple(tasks.start_cells[i]), tuple(tasks.goal_cells[i])}
+        options = [c for c in free if c not in taken]
+        coins[i] = env.cell_to_xy(options[rng.integers(len(options))])
+    return replace(tasks, coins=coins)

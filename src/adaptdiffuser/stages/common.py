@@ -39,6 +39,15 @@ def discriminator_metrics_path(phase: int) -> Path:
     return PHASE_METRICS / f"phase{phase}-discriminator.json"
 
 
+def coin_metrics_path(phase: int) -> Path:
+    """Gold-coin metrics of a phase (written by its evaluate-coin stage)."""
+    return PHASE_METRICS / f"phase{phase}-coin.json"
+
+
+def coin_plots_dir(phase: int) -> Path:
+    return Path(f"plots/coin/phase{phase}")
+
+
 def generated_path(phase: int) -> Path:
     return Path(f"data/phase{phase}/generated.parquet")
 

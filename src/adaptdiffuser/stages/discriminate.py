@@ -43,7 +43,17 @@ def run_discriminate(params: Params, root: Path, phase: int, progress: bool = Tr
     with stage_run(params.task, "discriminate", phase, logged, root):
         states, actions, tasks = split_task_trajectories(generated)
         env = make_env(params)
-        judgement = discriminate(env, states, actions, tasks.goals, cfg, params.env.maze, progress=progress)
+        judgement = discriminate(
+            env,
+            states,
+            actions,
+            tasks.goals,
+            cfg,
+            params.env.maze,
+            coins=tasks.coins,
+            coin_radius=params.gold_coin.radius,
+            progress=progress,
+        )
         report = judgement.report()
         mlflow.log_metrics({f"discriminator.{k}": float(v) for k, v in report.items()})
         picture = root / discriminator_plot_path(phase)

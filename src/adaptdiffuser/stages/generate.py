@@ -16,7 +16,7 @@ from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evolution.discriminator import planned_trajectory
 from adaptdiffuser.evolution.generate import generate_plans, task_trajectories
-from adaptdiffuser.evolution.tasks import sample_navigation_tasks
+from adaptdiffuser.evolution.tasks import add_coins, sample_navigation_tasks
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.stages.common import generated_path, model_dir
@@ -31,11 +31,15 @@ def run_generate(params: Params, root: Path, phase: int, device: torch.device, p
     source = model_dir(cfg.previous)
     bundle = load_bundle(root / source, device)
     seed = derive_seed(g.seed, phase)
-    with stage_run(params.task, "generate", phase, {"generate": asdict(g), "model": {"path": str(source)}}, root):
+    logged = {"generate": asdict(g), "alpha": params.alpha, "model": {"path": str(source)}}
+    with stage_run(params.task, "generate", phase, logged, root):
         env = make_env(params)
-        tasks = sample_navigation_tasks(env, g.tasks, np.random.default_rng(seed), g.cell_spread)
+        rng = np.random.default_rng(seed)
+        tasks = sample_navigation_tasks(env, g.tasks, rng, g.cell_spread)
+        if g.coin_fraction > 0:
+            tasks = add_coins(env, tasks, g.coin_fraction, rng)
         planner = Planner(bundle, make_sampler(g.sampler, g.sampler_steps), device)
-        plans = generate_plans(planner, tasks, g.batch_size, seed, progress=progress)
+        plans = generate_plans(planner, tasks, g.batch_size, seed, alpha=params.alpha, progress=progress)
         act_dim = planner.act_dim
         planned = [
             planned_trajectory(env, p[:, act_dim:], p[:, :act_dim], goal)
@@ -46,13 +50,14 @@ def run_generate(params: Params, root: Path, phase: int, device: torch.device, p
             tasks,
             np.arange(len(tasks)),
             params.task,
-            {"stage": "generate", "phase": phase, "model": str(source), **asdict(g)},
+            {"stage": "generate", "phase": phase, "model": str(source), "alpha": params.alpha, **asdict(g)},
         )
         out = root / generated_path(phase)
         out.parent.mkdir(parents=True, exist_ok=True)
         write_trajectories(out, traj)
         stats = {
             "generated": len(tasks),
+            "coin_tasks": int(tasks.has_coin().sum()),
             "planned_reach_rate": float(np.mean([t.steps_to_goal >= 0 for t in planned])),
             "planned_return_mean": float(np.mean([t.total_reward for t in planned])),
         }

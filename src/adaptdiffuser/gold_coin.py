@@ -1,0 +1,141 @@
+"""The unseen gold-coin task (paper section 5.3.1): reach the maze's goal and pick up a coin on the way.
+
+No expert data ever contains a coin. Plans are steered to the coin by :class:`CoinObjective` guidance; a coin
+is picked when the executed position passes within ``radius`` of it, and the task is done when the goal is
+reached after the pick. This module holds the fixed evaluation cases and the scoring of executed episodes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from adaptdiffuser.envs.maze2d import Cell, Maze2D, bfs_distances, shortest_path
+from adaptdiffuser.evaluation import standard_error
+
+#: where the coin lies relative to the shortest start -> goal path
+COIN_KINDS = ("on_path", "off_path", "behind_start")
+#: the paper's figure: Medium maze, coin at cell (4, 2) (row, column of the layout), start in the top-left room
+PAPER_MEDIUM_CASE = {"start": (1, 1), "coin": (4, 2)}
+
+
+@dataclass
+class CoinCases:
+    """Fixed evaluation cases: start states ``[n, 4]``, coin positions ``[n, 2]`` and the kind of each case."""
+
+    starts: np.ndarray
+    coins: np.ndarray
+    kinds: list[str]
+    start_cells: list[Cell]
+    coin_cells: list[Cell]
+
+    def __len__(self) -> int:
+        return len(self.starts)
+
+
+def coin_kind(env: Maze2D, start: Cell, coin: Cell) -> str | None:
+    """``on_path`` (strictly between start and goal on a shortest path), ``behind_start`` (reaching the coin from
+    the start leads away from the goal and the way back passes the start), ``off_path`` (any other detour), or
+    ``None`` when the coin is on the start or goal cell."""
+    goal = env.goal_cell
+    if coin in (start, goal):
+        return None
+    if coin in shortest_path(env.layout, start, goal)[1:-1]:
+        return "on_path"
+    to_goal = bfs_distances(env.layout, goal)
+    from_start = bfs_distances(env.layout, start)
+    if to_goal[coin] == from_start[coin] + to_goal[start]:
+        return "behind_start"
+    return "off_path"
+
+
+def coin_cases(env: Maze2D, per_kind: int, rng: np.random.Generator) -> CoinCases:
+    """``per_kind`` cases of each kind the maze allows (U-Maze is a corridor: it has no ``off_path`` case),
+    drawn from ``rng``; the Medium maze also gets the paper's case. Starts are cell centres plus the protocol's
+    reset noise; coins sit at cell centres."""
+    if per_kind <= 0:
+        raise ValueError(f"cases per kind must be positive, got {per_kind}")
+    free = [tuple(c) for c in env.layout.free_cells]
+    pairs: dict[str, list[tuple[Cell, Cell]]] = {kind: [] for kind in COIN_KINDS}
+    for start in free:
+        if start == env.goal_cell:
+            continue
+        for coin in free:
+            kind = coin_kind(env, start, coin)
+            if kind is not None:
+                pairs[kind].append((start, coin))
+    chosen: list[tuple[str, Cell, Cell]] = []
+    for kind in COIN_KINDS:
+        if pairs[kind]:
+            for i in rng.choice(len(pairs[kind]), size=per_kind, replace=len(pairs[kind]) < per_kind):
+                chosen.append((kind, *pairs[kind][i]))
+    if env.name == "medium":
+        start, coin = PAPER_MEDIUM_CASE["start"], PAPER_MEDIUM_CASE["coin"]
+        chosen.append((coin_kind(env, start, coin) or "off_path", start, coin))
+    noise = rng.uniform(-env.reset_pos_noise, env.reset_pos_noise, size=(len(chosen), 2))
+    velocity = rng.normal(0.0, env.reset_vel_noise, size=(len(chosen), 2))
+    starts = np.stack([env.cell_to_xy(s) for _, s, _ in chosen]) + noise
+    return CoinCases(
+        starts=np.concatenate([starts, velocity], axis=1),
+        coins=np.stack([env.cell_to_xy(c) for _, _, c in chosen]),
+        kinds=[k for k, _, _ in chosen],
+        start_cells=[s for _, s, _ in chosen],
+        coin_cells=[c for _, _, c in chosen],
+    )
+
+
+@dataclass
+class CoinOutcome:
+    """One executed coin episode: the first step within the pick radius (-1 if never), the first step at the
+    goal after that (-1 if never), the first step at the goal at all, and whether the plan crossed a wall."""
+
+    pick_step: int
+    goal_after_pick_step: int
+    goal_step: int
+    plan_collides: bool
+
+    @property
+    def picked(self) -> bool:
+        return self.pick_step >= 0
+
+    @property
+    def both(self) -> bool:
+        return self.goal_after_pick_step >= 0
+
+
+def coin_outcome(env: Maze2D, executed: np.ndarray, coin: np.ndarray, radius: float, plan: np.ndarray) -> CoinOutcome:
+    """Score one episode from its executed states ``[T + 1, obs]`` (the goal is ``env``'s), the ``coin`` position
+    and the planned states ``plan`` (for wall collisions)."""
+    near = np.flatnonzero(np.linalg.norm(executed[:, :2] - coin[None, :2], axis=1) <= radius)
+    pick = int(near[0]) if len(near) else -1
+    at_goal = np.flatnonzero([env.reward(s) > 0 for s in executed])
+    after = at_goal[at_goal >= pick] if pick >= 0 else np.zeros(0, dtype=int)
+    return CoinOutcome(
+        pick_step=pick,
+        goal_after_pick_step=int(after[0]) if len(after) else -1,
+        goal_step=int(at_goal[0]) if len(at_goal) else -1,
+        plan_collides=bool(any(env.in_wall(p[:2]) for p in plan)),
+    )
+
+
+def summarize_coin(outcomes: list[CoinOutcome], kinds: list[str], scores: np.ndarray) -> dict:
+    """``gold_coin`` metrics: rates over all cases (with the standard error of the both-rate), and the both-rate
+    of each kind of case."""
+    both = np.array([o.both for o in outcomes], dtype=np.float64)
+    steps = [o.goal_after_pick_step for o in outcomes if o.both]
+    summary = {
+        "pick_rate": float(np.mean([o.picked for o in outcomes])),
+        "goal_rate": float(np.mean([o.goal_step >= 0 for o in outcomes])),
+        "both_rate": float(both.mean()),
+        "both_rate_stderr": standard_error(both),
+        "collision_rate": float(np.mean([o.plan_collides for o in outcomes])),
+        "steps_to_goal_mean": float(np.mean(steps)) if steps else -1.0,
+        "score_mean": float(np.mean(scores)),
+        "n_episodes": len(outcomes),
+    }
+    for kind in COIN_KINDS:
+        mask = np.array([k == kind for k in kinds])
+        if mask.any():
+            summary[f"both_rate_{kind}"] = float(both[mask].mean())
+    return summary

@@ -1,0 +1,79 @@
+"""Stage ``evaluate-coin``: a phase's planner on the unseen gold-coin task, guided toward the coin by ``alpha``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import torch
+
+from adaptdiffuser.checkpoint import load_bundle
+from adaptdiffuser.config import Params
+from adaptdiffuser.diffusion.guidance import CoinObjective
+from adaptdiffuser.diffusion.samplers import make_sampler
+from adaptdiffuser.envs.factory import make_env
+from adaptdiffuser.evaluation import normalized_score, run_episodes
+from adaptdiffuser.gold_coin import coin_cases, coin_outcome, summarize_coin
+from adaptdiffuser.io import read_json, write_json
+from adaptdiffuser.planning import Planner, PlannerController
+from adaptdiffuser.plots import save_coin_picture
+from adaptdiffuser.stages.common import REFERENCE, coin_metrics_path, coin_plots_dir, model_dir
+from adaptdiffuser.tracking import stage_run
+
+
+def run_evaluate_coin(params: Params, root: Path, phase: int, device: torch.device, progress: bool = True) -> dict:
+    """Plan each fixed coin case once, guided toward its coin with scale ``alpha``, follow the plan for a whole
+    episode, and score pick / goal / both rates, plan collisions and the navigation score."""
+    ref = read_json(root / REFERENCE, "reference scores (run the reference stage)")
+    bundle = load_bundle(root / model_dir(phase), device)
+    gc, pl = params.gold_coin, params.planner
+    logged = {"gold_coin": params.section("gold_coin"), "alpha": params.alpha, "planner": params.section("planner")}
+    with stage_run(params.task, "evaluate-coin", phase, logged, root):
+        env = make_env(params)
+        cases = coin_cases(env, gc.cases_per_kind, np.random.default_rng(gc.seed))
+        planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
+        coins = torch.as_tensor(cases.coins, dtype=torch.float32, device=device)
+
+        def guidance_for(episodes: list[int]):
+            return planner.guidance(CoinObjective(coins[episodes]), params.alpha)
+
+        controller = PlannerController(planner, gc.seed, pl.replan_every, guidance_for=guidance_for)
+        result = run_episodes(
+            lambda: make_env(params),
+            controller,
+            len(cases),
+            gc.seed,
+            gc.batch_size,
+            desc=f"gold coin phase {phase}",
+            progress=progress,
+            reset=lambda e, i: e.set_state(cases.starts[i]),
+        )
+        outcomes = [
+            coin_outcome(env, executed, coin, gc.radius, plan)
+            for executed, coin, plan in zip(result.executed, cases.coins, result.plans, strict=True)
+        ]
+        scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
+        gold = summarize_coin(outcomes, cases.kinds, scores)
+        write_json(root / coin_metrics_path(phase), {"gold_coin": gold})
+        mlflow.log_metrics({f"gold_coin.{k}": float(v) for k, v in gold.items()})
+        pictures = root / coin_plots_dir(phase)
+        goals = np.stack([env.goal_state()] * len(cases))
+        picked = list(range(min(gc.pictures, len(cases))))
+        if picked:
+            plain = planner.plan(cases.starts[picked], goals[picked], seed=gc.seed)[:, :, planner.act_dim :]
+        for i in picked:
+            picture = pictures / f"coin_{i:02d}.png"
+            verdict = "picked + goal" if outcomes[i].both else ("picked" if outcomes[i].picked else "missed")
+            save_coin_picture(
+                env,
+                picture,
+                plain[i],
+                result.plans[i],
+                result.executed[i],
+                cases.coins[i],
+                gc.radius,
+                f"phase {phase}, {cases.kinds[i]} coin, alpha {params.alpha:g}: {verdict}",
+            )
+            mlflow.log_artifact(str(picture), artifact_path="gold_coin")
+    return gold
