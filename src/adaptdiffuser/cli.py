@@ -180,6 +180,36 @@ def report() -> None:
 
 
 @app.command()
+def sweep(
+    params: ParamsPath = Path("params.yaml"),
+    trials: Annotated[int | None, typer.Option(help="trials in all (default: sweep.trials)")] = None,
+    workers: Annotated[int | None, typer.Option(help="worker processes sharing the study (default: sweep.workers)")] = (
+        None
+    ),
+    storage: Annotated[
+        str | None,
+        typer.Option(help="Optuna storage: a journal file path (default sweeps/<study>.journal) or postgresql://..."),
+    ] = None,
+    apply: Annotated[bool, typer.Option("--apply", help="write the best values into the params file")] = False,
+    device: Device = "auto",
+) -> None:
+    """Optuna sweep over the params in sweep.space: each trial reruns the evolution phases on the cached phase 0."""
+    from adaptdiffuser.sweep import apply_best, run_sweep
+
+    _params(params)
+    result = _guarded(lambda: run_sweep(Path.cwd(), params, trials, workers, storage, device))
+    counts: dict[str, int] = {}
+    for trial in result.study.trials:
+        counts[trial.state.name] = counts.get(trial.state.name, 0) + 1
+    typer.echo(f"study {result.study.study_name}: {counts}")
+    typer.echo(f"best objective {result.best_value:.2f} with {result.best_values}")
+    typer.echo(f"reproduce it as a DVC experiment:\n  {result.command}")
+    if apply:
+        _guarded(lambda: apply_best(params, result.best_values))
+        typer.echo(f"wrote the best values into {params}")
+
+
+@app.command()
 def profile(
     name: Annotated[str, typer.Argument(help="quick, smoke, paper-umaze, paper-medium or paper-large")],
     params: ParamsPath = Path("params.yaml"),

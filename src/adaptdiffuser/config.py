@@ -95,6 +95,32 @@ class GoldCoinParams:
 
 
 @dataclass(frozen=True)
+class SearchDimension:
+    """One entry of ``sweep.space``: a params key (dotted) and the range Optuna samples it from."""
+
+    key: str
+    kind: str  # float | int | categorical
+    low: float | None = None
+    high: float | None = None
+    log: bool = False
+    choices: tuple = ()
+
+
+@dataclass(frozen=True)
+class SweepParams:
+    study: str = "adaptdiffuser"
+    trials: int = 4
+    workers: int = 2
+    seed: int = 0
+    objective: str = "mix"
+    coin_weight: float = 0.5
+    storage: str | None = None
+    heartbeat_s: int = 30
+    pruner_startup_trials: int = 1
+    space: tuple[SearchDimension, ...] = ()
+
+
+@dataclass(frozen=True)
 class GenerateParams:
     tasks: int = 1024
     batch_size: int = 128
@@ -172,6 +198,7 @@ class Params:
     gold_coin: GoldCoinParams = field(default_factory=GoldCoinParams)
     alpha: float = 0.0
     phases: tuple[PhaseParams, ...] = ()
+    sweep: SweepParams = field(default_factory=SweepParams)
 
     @property
     def task(self) -> str:
@@ -210,12 +237,100 @@ def load_params(path: str | Path = "params.yaml") -> Params:
     raw = yaml.safe_load(path.read_text()) or {}
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: top level must be a mapping of sections")
+    return params_from_dict(raw)
+
+
+def params_from_dict(raw: dict[str, Any]) -> Params:
+    """Build and validate params from the parsed YAML mapping (which is left unchanged)."""
+    raw = dict(raw)
     phases_raw = raw.pop("phases", None) or {}
+    sweep_raw = raw.pop("sweep", None) or {}
     params = _build(Params, raw, prefix="")
     evolution_raw = raw.get("evolution") or {}
-    params = dataclasses.replace(params, phases=_build_phases(phases_raw, evolution_raw))
+    params = dataclasses.replace(params, phases=_build_phases(phases_raw, evolution_raw), sweep=_build_sweep(sweep_raw))
     validate(params)
+    _validate_sweep_space(raw | {"phases": phases_raw}, params.sweep)
     return params
+
+
+SWEEP_OBJECTIVES = ("navigation", "coin", "mix")
+
+
+def _build_sweep(raw: Any) -> SweepParams:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"sweep must be a mapping, got {type(raw).__name__}")
+    raw = dict(raw)
+    space_raw = raw.pop("space", None) or {}
+    sweep = _build(SweepParams, raw, prefix="sweep.")
+    if not isinstance(space_raw, dict):
+        raise ConfigError("sweep.space must map params keys to ranges, e.g. {alpha: {low: 1, high: 100, log: true}}")
+    dims = []
+    for key, spec in space_raw.items():
+        where = f"sweep.space.{key}"
+        if not isinstance(spec, dict):
+            raise ConfigError(f"{where} must be a mapping like {{low: 1, high: 10}} or {{choices: [a, b]}}")
+        unknown = set(spec) - {"low", "high", "log", "int", "choices"}
+        if unknown:
+            raise ConfigError(f"{where}: unknown field {sorted(unknown)[0]!r} (use low, high, log, int or choices)")
+        if "choices" in spec:
+            choices = spec["choices"]
+            if not isinstance(choices, list) or not choices:
+                raise ConfigError(f"{where}.choices must be a non-empty list")
+            dims.append(SearchDimension(str(key), "categorical", choices=tuple(choices)))
+            continue
+        if "low" not in spec or "high" not in spec:
+            raise ConfigError(f"{where} needs low and high (or choices)")
+        low = _coerce(spec["low"], float, f"{where}.low")
+        high = _coerce(spec["high"], float, f"{where}.high")
+        log = _coerce(spec.get("log", False), bool, f"{where}.log")
+        is_int = _coerce(spec.get("int", False), bool, f"{where}.int")
+        if not low < high:
+            raise ConfigError(f"{where}: low ({low:g}) must be below high ({high:g})")
+        if log and low <= 0:
+            raise ConfigError(f"{where}: a log range needs low > 0, got {low:g}")
+        dims.append(SearchDimension(str(key), "int" if is_int else "float", low, high, log))
+    if sweep.trials <= 0 or sweep.workers <= 0:
+        raise ConfigError(f"sweep.trials and sweep.workers must be > 0, got {sweep.trials} and {sweep.workers}")
+    if sweep.objective not in SWEEP_OBJECTIVES:
+        raise ConfigError(f"sweep.objective must be one of {SWEEP_OBJECTIVES}, got {sweep.objective!r}")
+    if not 0.0 <= sweep.coin_weight <= 1.0:
+        raise ConfigError(f"sweep.coin_weight must be in [0, 1], got {sweep.coin_weight}")
+    return dataclasses.replace(sweep, space=tuple(dims))
+
+
+def set_dotted(raw: dict[str, Any], key: str, value: Any) -> dict[str, Any]:
+    """A deep copy of ``raw`` with the dotted ``key`` (e.g. ``evolution.discriminate.max_error``) set."""
+    import copy
+
+    out = copy.deepcopy(raw)
+    node = out
+    parts = key.split(".")
+    for part in parts[:-1]:
+        if not isinstance(node.get(part), dict):
+            node[part] = {}
+        node = node[part]
+    node[parts[-1]] = value
+    return out
+
+
+def _validate_sweep_space(raw: dict[str, Any], sweep: SweepParams) -> None:
+    """Every search key must name an existing params value, and both ends of its range must be valid params."""
+    for dim in sweep.space:
+        node: Any = raw
+        for part in dim.key.split("."):
+            if not isinstance(node, dict) or part not in node:
+                raise ConfigError(f"sweep.space.{dim.key}: no such key in params")
+            node = node[part]
+        ends = list(dim.choices) if dim.kind == "categorical" else [dim.low, dim.high]
+        for value in ends:
+            if dim.kind == "int":
+                value = int(value)
+            trial_raw = set_dotted(raw, dim.key, value)
+            trial_raw.pop("sweep", None)
+            try:
+                params_from_dict(trial_raw)
+            except ConfigError as err:
+                raise ConfigError(f"sweep.space.{dim.key}: the value {value!r} is not valid: {err}") from None
 
 
 _PHASE_NAME = re.compile(r"phase([1-9][0-9]*)")

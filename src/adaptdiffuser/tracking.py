@@ -16,6 +16,9 @@ from typing import Any
 
 import mlflow
 
+#: set by a sweep worker to the MLflow run id of the current trial
+PARENT_RUN_ENV = "ADAPTDIFFUSER_PARENT_RUN_ID"
+
 
 def tracking_uri(root: Path) -> str:
     """The tracking URI in effect for a project rooted at ``root``."""
@@ -63,6 +66,8 @@ def stage_run(task: str, stage: str, phase: int, params: dict[str, Any], root: P
     tags = {"stage": stage, "phase": str(phase), "task": task, "git_commit": git_commit(root)}
     if os.environ.get("DVC_EXP_NAME"):
         tags["dvc_exp_name"] = os.environ["DVC_EXP_NAME"]
+    if os.environ.get(PARENT_RUN_ENV):  # a sweep trial: nest the stage's run under the trial's run
+        tags["mlflow.parentRunId"] = os.environ[PARENT_RUN_ENV]
     with mlflow.start_run(experiment_id=experiment_id, run_name=f"{stage}-phase{phase}", tags=tags) as run:
         mlflow.log_params({k: str(v)[:500] for k, v in flatten(params).items()})
         yield run

@@ -1,0 +1,199 @@
+"""The Optuna sweep on the smoke profile: worker processes sharing a real journal file (and a real PostgreSQL
+server when one is installed), MLflow parent and child runs in a temporary sqlite store, early validation of the
+search space, and stale trials of killed workers."""
+
+from __future__ import annotations
+
+import glob
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import optuna
+import pytest
+import torch
+import yaml
+from mlflow.tracking import MlflowClient
+
+from adaptdiffuser.config import ConfigError, apply_profile, load_params
+from adaptdiffuser.stages.collect import run_collect
+from adaptdiffuser.stages.pretrain import run_pretrain
+from adaptdiffuser.stages.reference import run_reference
+from adaptdiffuser.sweep import _fail_trials_of_dead_workers, make_storage, reproduce_command
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A smoke project after collect, reference and pretrain (what a sweep reuses)."""
+    root = tmp_path_factory.mktemp("sweep")
+    shutil.copytree(REPO / "profiles", root / "profiles")
+    apply_profile("smoke", root / "profiles", root / "params.yaml")
+    params = load_params(root / "params.yaml")
+    old = os.environ.pop("MLFLOW_TRACKING_URI", None)
+    try:
+        run_collect(params, root, progress=False)
+        run_reference(params, root, progress=False)
+        run_pretrain(params, root, torch.device("cpu"), progress=False)
+    finally:
+        if old is not None:
+            os.environ["MLFLOW_TRACKING_URI"] = old
+    return root
+
+
+def _sweep(root: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env['PATH']}"
+    return subprocess.run(
+        ["adaptdiffuser", "sweep", *args], cwd=root, env=env, capture_output=True, text=True, timeout=600
+    )
+
+
+def _sweep_runs(root: Path, study: str) -> tuple[object, list]:
+    client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")
+    experiment = client.get_experiment_by_name("maze2d-umaze")
+    runs = client.search_runs([experiment.experiment_id], filter_string=f"tags.sweep = '{study}'")
+    (parent,) = [r for r in runs if r.data.tags.get("stage") == "sweep"]
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]
+    return client, [parent, *children]
+
+
+def test_two_workers_share_a_journal_study_and_mlflow_nests_the_trials(project: Path) -> None:
+    out = _sweep(project, "--trials", "2", "--workers", "2", "--apply")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "study adaptdiffuser: {'COMPLETE': 2}" in out.stdout
+    assert "dvc exp run -S 'alpha=" in out.stdout and "-S 'evolution.discriminate.max_error=" in out.stdout
+
+    storage = make_storage(None, project, "adaptdiffuser", 30)
+    study = optuna.load_study(study_name="adaptdiffuser", storage=storage)
+    trials = study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
+    assert len(trials) == 2
+    assert len({t.user_attrs["worker_pid"] for t in trials}) == 2  # two processes each ran one trial
+    assert all(sorted(t.intermediate_values) == [1, 2] for t in trials)  # a score after each phase
+
+    client, (parent, *children) = _sweep_runs(project, "adaptdiffuser")
+    assert len(children) == 2 and parent.info.status == "FINISHED"
+    assert parent.data.tags["reproduce"] == reproduce_command(study.best_params)
+    for child in children:
+        assert set(child.data.params) == {"alpha", "evolution.discriminate.max_error"}
+        assert [m.step for m in client.get_metric_history(child.info.run_id, "objective")] == [1, 2]
+    pictures = {a.path for a in client.list_artifacts(parent.info.run_id, "optuna")}
+    assert pictures == {"optuna/optimization_history.png", "optuna/param_importances.png"}
+
+    # --apply wrote the best values into params.yaml, which still loads
+    applied = load_params(project / "params.yaml")
+    assert applied.alpha == pytest.approx(study.best_params["alpha"])
+    assert applied.phase(1).discriminate.max_error == pytest.approx(
+        study.best_params["evolution.discriminate.max_error"]
+    )
+
+
+@pytest.mark.parametrize(
+    ("space", "message"),
+    [
+        ({"alpha": {"low": 10.0, "high": 1.0}}, "sweep.space.alpha: low"),
+        ({"alpha": {"low": 0.0, "high": 1.0, "log": True}}, "log range needs low > 0"),
+        ({"evolution.discriminate.quantile": {"low": 0.5, "high": 1.5}}, "discriminate.quantile"),
+        ({"evolution.discriminate.max_errr": {"low": 0.5, "high": 1.5}}, "no such key"),
+    ],
+)
+def test_a_bad_search_space_is_rejected_before_any_trial(project: Path, space: dict, message: str) -> None:
+    raw = yaml.safe_load((project / "params.yaml").read_text())
+    raw["sweep"]["space"] = space
+    raw["sweep"]["study"] = "bad"
+    bad = project / "bad.yaml"
+    bad.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ConfigError, match=message):
+        load_params(bad)
+    out = _sweep(project, "--params", "bad.yaml")
+    assert out.returncode == 2 and message.split(":")[0] in out.stderr
+    assert not (project / "sweeps" / "bad.journal").exists()
+
+
+def test_trials_of_a_killed_worker_are_failed_and_retried_once(tmp_path: Path) -> None:
+    storage = make_storage(str(tmp_path / "s.journal"), tmp_path, "stale", 30)
+    study = optuna.create_study(study_name="stale", storage=storage)
+    trial = study.ask({"alpha": optuna.distributions.FloatDistribution(1.0, 10.0)})
+    trial.set_user_attr("worker_pid", 4242)
+    other = study.ask({"alpha": optuna.distributions.FloatDistribution(1.0, 10.0)})
+    other.set_user_attr("worker_pid", 777)
+    _fail_trials_of_dead_workers(study, {4242})
+    states = {t.number: t.state for t in study.trials}
+    assert states[trial.number] == optuna.trial.TrialState.FAIL
+    assert states[other.number] == optuna.trial.TrialState.RUNNING  # a live worker's trial is left alone
+    (waiting,) = study.get_trials(states=(optuna.trial.TrialState.WAITING,))
+    assert waiting.params == {} and waiting.system_attrs["fixed_params"] == {"alpha": trial.params["alpha"]}
+
+
+def _postgres_bin() -> Path | None:
+    found = shutil.which("initdb")
+    if found:
+        return Path(found).parent
+    candidates = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"))
+    return Path(candidates[-1]).parent if candidates else None
+
+
+def _user_exists(name: str) -> bool:
+    import pwd
+
+    try:
+        pwd.getpwnam(name)
+    except KeyError:
+        return False
+    return True
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def postgres():
+    """A real PostgreSQL server on loopback, in a temporary data directory (as user postgres when run as root,
+    since the server refuses to run as root)."""
+    bindir = _postgres_bin()
+    if bindir is None:
+        pytest.skip("PostgreSQL server binaries (initdb, pg_ctl) are not installed; .ci/run installs them")
+    base = Path(tempfile.mkdtemp(prefix="adaptdiffuser-pg-"))
+    base.chmod(0o755)
+    data = base / "pgdata"
+    sockets = base / "pgsock"
+    sockets.mkdir()
+    prefix: list[str] = []
+    if os.geteuid() == 0:
+        if shutil.which("runuser") is None or not _user_exists("postgres"):
+            pytest.skip("running as root without runuser or a postgres user: cannot start the server unprivileged")
+        prefix = ["runuser", "-u", "postgres", "--"]
+        shutil.chown(base, "postgres")
+        shutil.chown(sockets, "postgres")
+    port = _free_port()
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}  # the server keeps inherited pipes open
+    initdb = [*prefix, str(bindir / "initdb"), "-D", str(data), "-U", "postgres", "-A", "trust"]
+    subprocess.run(initdb, check=True, **quiet)
+    options = f"-p {port} -k {sockets} -c listen_addresses=127.0.0.1"
+    pg_ctl = [*prefix, str(bindir / "pg_ctl"), "-D", str(data), "-l", str(base / "server.log")]
+    subprocess.run([*pg_ctl, "-o", options, "-w", "start"], check=True, **quiet)
+    try:
+        yield f"postgresql://postgres@127.0.0.1:{port}/postgres"
+    finally:
+        subprocess.run([*pg_ctl, "-m", "immediate", "stop"], **quiet)
+        shutil.rmtree(base, ignore_errors=True)
+
+
+def test_the_same_sweep_runs_on_postgresql(project: Path, postgres: str) -> None:
+    raw = yaml.safe_load((project / "params.yaml").read_text())
+    raw["sweep"]["study"] = "on-postgres"
+    (project / "pg.yaml").write_text(yaml.safe_dump(raw))
+    out = _sweep(project, "--params", "pg.yaml", "--trials", "2", "--workers", "2", "--storage", postgres)
+    assert out.returncode == 0, out.stdout + out.stderr
+    study = optuna.load_study(study_name="on-postgres", storage=postgres)
+    assert len(study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))) == 2
+    _, (parent, *children) = _sweep_runs(project, "on-postgres")
+    assert len(children) == 2 and parent.data.tags["storage"] == postgres
