@@ -8,8 +8,9 @@ paper's ``alpha = -50`` on the distance is our ``alpha = 50``.
 
 Scale: the gradient is taken with respect to the *normalized* trajectory (the sampler's space) of J evaluated on
 raw states, and multiplied by the variance of the step (the DDPM posterior variance; for strided DDIM the
-variance of the equivalent stochastic jump). With Maze2D's min/max normalizer a raw unit is about half the
-normalized range, so each state moves by about ``alpha * variance`` normalized units per step.
+variance of the equivalent stochastic jump). With Maze2D's min/max normalizer (U-Maze positions span about 2.1
+maze units, mapped to a normalized range of 2), each state moves by about ``1.1 * alpha * variance``
+normalized units per step.
 """
 
 from __future__ import annotations
