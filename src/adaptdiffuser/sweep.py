@@ -70,9 +70,10 @@ def _yaml_scalar(value: Any) -> str:
 
 
 def make_storage(spec: str | None, root: Path, study: str, heartbeat_s: int) -> optuna.storages.BaseStorage:
-    """A journal file under ``sweeps/`` (default) or an RDB URL with heartbeats and one retry of failed trials."""
-    if spec is None or spec.startswith("journal:") or spec.endswith(".journal"):
-        path = Path(spec.removeprefix("journal:")) if spec else root / "sweeps" / f"{study}.journal"
+    """A journal file (``spec`` a path; default ``sweeps/<study>.journal``) or, for a URL such as
+    ``postgresql://...``, an RDB storage with heartbeats that fail and retry (once) the trials of dead workers."""
+    if spec is None or "://" not in spec:
+        path = Path(spec) if spec else root / "sweeps" / f"{study}.journal"
         path.parent.mkdir(parents=True, exist_ok=True)
         from optuna.storages.journal import JournalFileBackend
 
