@@ -23,7 +23,7 @@ from adaptdiffuser.config import ConfigError, apply_profile, load_params
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
-from adaptdiffuser.sweep import _fail_trials_of_dead_workers, make_storage, reproduce_command
+from adaptdiffuser.sweep import _fail_trials_of_dead_workers, apply_best, make_storage, reproduce_command
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -113,6 +113,19 @@ def test_a_bad_search_space_is_rejected_before_any_trial(project: Path, space: d
     out = _sweep(project, "--params", "bad.yaml")
     assert out.returncode == 2 and message.split(":")[0] in out.stderr
     assert not (project / "sweeps" / "bad.journal").exists()
+
+
+def test_apply_changes_only_the_swept_lines_of_the_repository_params(tmp_path: Path) -> None:
+    repo_params = Path(__file__).resolve().parents[1] / "params.yaml"
+    target = tmp_path / "params.yaml"
+    shutil.copy(repo_params, target)
+    apply_best(target, {"alpha": 42.5, "evolution.discriminate.max_error": 1.25})
+    before, after = repo_params.read_text().splitlines(), target.read_text().splitlines()
+    assert len(before) == len(after)
+    changed = [(old, new) for old, new in zip(before, after, strict=True) if old != new]
+    assert [new.split("#")[0].split() for _, new in changed] == [["alpha:", "42.5"], ["max_error:", "1.25"]]
+    assert all("#" in new for _, new in changed)  # the comments stay
+    assert load_params(target).alpha == 42.5
 
 
 def test_trials_of_a_killed_worker_are_failed_and_retried_once(tmp_path: Path) -> None:

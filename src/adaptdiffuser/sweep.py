@@ -348,6 +348,8 @@ def apply_best(params_path: Path, values: dict[str, Any]) -> None:
 
     ryaml = YAML()
     ryaml.preserve_quotes = True
+    # ruamel writes None as an empty value by default; keep the file's explicit ``null``s.
+    ryaml.representer.add_representer(type(None), lambda rep, _: rep.represent_scalar("tag:yaml.org,2002:null", "null"))
     data = ryaml.load(params_path.read_text())
     for key, value in values.items():
         node = data
