@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import pickle
 import shutil
 from pathlib import Path
 
@@ -10,7 +12,17 @@ import yaml
 from typer.testing import CliRunner
 
 from adaptdiffuser.cli import app
-from adaptdiffuser.config import ConfigError, Params, apply_profile, deep_merge, load_params
+from adaptdiffuser.config import (
+    ConfigError,
+    EnvParams,
+    Params,
+    apply_profile,
+    deep_merge,
+    describe,
+    load_params,
+    set_dotted,
+    stage_names,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILES = REPO / "profiles"
@@ -127,7 +139,7 @@ BAD = [
     ({"phases": {"phase3": {}}}, "phases.phase3.previous"),
     ({"phases": {"first": {"previous": 0}}}, "phases.first"),
     ({"phases": {"phase4": {"previous": 0}}}, "phase1..phase3"),
-    ({"phases": [{"previous": 0}]}, "phases must be a mapping"),
+    ({"phases": [{"previous": 0}]}, "phases: must be a mapping"),
     ({"phases": {"phase1": {"previous": 0, "generate": {"taskz": 3}}}}, "phases.phase1.generate.taskz"),
     ({"phases": {"phase1": {"previous": 0, "generate": {"tasks": 0}}}}, "phases.phase1.generate.tasks"),
     ({"phases": {"phase1": {"previous": 0}}, "evolution": {"discriminate": {"rule": "best"}}}, "discriminate.rule"),
@@ -150,8 +162,129 @@ BAD = [
 
 @pytest.mark.parametrize(("overlay", "key"), BAD, ids=[key.replace("\\", "") for _, key in BAD])
 def test_bad_values_raise_config_error_naming_the_key(tmp_path: Path, overlay: dict, key: str) -> None:
-    with pytest.raises(ConfigError, match=key):
+    with pytest.raises(ConfigError, match=key) as err:
         load_params(write_params(tmp_path, overlay))
+    assert len(str(err.value).splitlines()) == 1
+
+
+NAN, INF = float("nan"), float("inf")
+SEEDS = ["collect.seed", "pretrain.seed", "evaluate.seed", "gold_coin.seed", "sweep.seed"]
+SEEDS += ["evolution.generate.seed", "evolution.finetune.seed"]
+PHASE1 = {"phases": {"phase1": {"previous": 0}}}
+# values the hand-written loader used to accept (or crash on): each is a one-line ConfigError starting with its key
+REJECTED = [
+    ({"pretrain": {"lr": NAN}}, "pretrain.lr", "must be a finite number, got nan"),
+    ({"pretrain": {"lr": INF}}, "pretrain.lr", "must be a finite number, got inf"),
+    ({"pretrain": {"lr": -INF}}, "pretrain.lr", "must be a finite number, got -inf"),
+    ({"env": {"goal_radius": NAN}}, "env.goal_radius", "must be a finite number, got nan"),
+    ({"alpha": INF}, "alpha", "must be a finite number, got inf"),
+    ({"evolution": {"discriminate": {"max_error": NAN}}}, "evolution.discriminate.max_error", "finite"),
+    *[(set_dotted({}, key, -1), key, "must be >= 0, got -1") for key in SEEDS],
+    (PHASE1 | {"phases": {"phase1": {"previous": 0, "generate": {"seed": -3}}}}, "phases.phase1.generate.seed", ">= 0"),
+    (PHASE1 | {"phases": {"phase1": {"previous": 0, "finetune": {"seed": -3}}}}, "phases.phase1.finetune.seed", ">= 0"),
+    ({"sweep": {"heartbeat_s": 0}}, "sweep.heartbeat_s", "must be > 0, got 0"),
+    ({"sweep": {"pruner_startup_trials": -1}}, "sweep.pruner_startup_trials", "must be >= 0"),
+    ({"env": {"episode_steps": 100}}, "env.episode_steps", "100 is shorter than diffusion.horizon=128"),
+    ({"diffusion": {"horizon": 320}}, "env.episode_steps", "null means the maze2d-umaze protocol's 300 steps"),
+    (
+        {"env": {"maze": "large"}, "diffusion": {"horizon": 1024}},
+        "env.episode_steps",
+        "maze2d-large protocol's 800 steps, shorter than diffusion.horizon=1024",
+    ),
+    ({"planner": {"sampler_steps": 65}}, "planner.sampler_steps", "exceeds diffusion.n_steps=64"),
+    (
+        {"phases": {"phase1": {"previous": 0, "generate": {"sampler_steps": 65}}}},
+        "phases.phase1.generate.sampler_steps",
+        "1..diffusion.n_steps=64",
+    ),
+    ({"phases": {"phase1": 3}}, "phases.phase1", "must be a mapping like {previous: 0}"),
+    ({"phases": {"phase1": "previous 0"}}, "phases.phase1", "must be a mapping"),
+    ({"phases": {"phase1": [0]}}, "phases.phase1", "must be a mapping"),
+    ({"phases": {"phase1": {"previous": 0, "generate": 5}}}, "phases.phase1.generate", "must be a mapping, got 5"),
+    ({"phases": {"phase1": {"previous": 0, "sampler": "ddim"}}}, "phases.phase1.sampler", "unknown key"),
+    ({"phases": {"phase1": {"previous": -1}}}, "phases.phase1.previous", "must be >= 0, got -1"),
+    ({"phases": {"phase1": {"previous": 0.5}}}, "phases.phase1.previous", "must be an integer, got 0.5"),
+    ({"env": {"random_goal": "yes"}}, "env.random_goal", "must be true or false, got 'yes'"),
+    ({"env": {"random_goal": 1}}, "env.random_goal", "must be true or false, got 1"),
+    ({"collect": {"steps": 1.5}}, "collect.steps", "must be an integer, got 1.5"),
+    ({"model": {"dim_mults": []}}, "model.dim_mults", "non-empty list of positive integers"),
+    ({"sweep": {"trials": 0}}, "sweep.trials", "must be > 0"),
+    ({"sweep": {"objective": "speed"}}, "sweep.objective", "must be one of 'navigation', 'coin', 'mix'"),
+    ({"sweep": {"space": {"alpha": {"low": NAN, "high": 1.0}}}}, "sweep.space.alpha.low", "finite"),
+    ({"sweep": {"space": {"alpha": {"lo": 1.0, "high": 2.0}}}}, "sweep.space.alpha", "unknown field 'lo'"),
+    ({"sweep": {"space": {"alpha": 3}}}, "sweep.space.alpha", "must be a mapping"),
+    ({"sweep": {"space": [1, 2]}}, "sweep.space", "must map params keys to ranges"),
+    ({"sweep": {"storage": 5}}, "sweep.storage", "must be a string, got 5"),
+]
+
+
+@pytest.mark.parametrize(
+    ("overlay", "key", "reason"), REJECTED, ids=[f"{k}-{i}" for i, (_, k, _) in enumerate(REJECTED)]
+)
+def test_rejected_values_give_a_one_line_error_starting_with_the_key(
+    tmp_path: Path, overlay: dict, key: str, reason: str
+) -> None:
+    with pytest.raises(ConfigError) as err:
+        load_params(write_params(tmp_path, overlay))
+    message = str(err.value)
+    assert len(message.splitlines()) == 1, message
+    assert message.startswith(f"{key}: "), message
+    assert reason in message, message
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "key"),
+    [
+        ("lr: 0.0002", "lr: .nan", "pretrain.lr: must be a finite number, got nan"),
+        ("lr: 0.0002", "lr: .inf", "pretrain.lr: must be a finite number, got inf"),
+        ("lr: 0.0002", "lr: 1e999", "pretrain.lr: must be a finite number, got inf"),  # YAML 1.1: a string
+        ("goal_radius: 0.5", "goal_radius: .NaN", "env.goal_radius: must be a finite number, got nan"),
+        ("  seed: 0\nmodel", "  seed: -1\nmodel", "collect.seed: must be >= 0, got -1"),
+        ("heartbeat_s: 30", "heartbeat_s: 0", "sweep.heartbeat_s: must be > 0, got 0"),
+        ("episode_steps: null", "episode_steps: 64", "env.episode_steps: 64 is shorter than diffusion.horizon=128"),
+        ("phase1: {previous: 0}", "phase1: 3", "phases.phase1: must be a mapping"),
+        ("random_goal: false", "random_goal: no", None),  # YAML 1.1 reads `no` as false: accepted
+    ],
+)
+def test_rejected_values_as_written_in_yaml(tmp_path: Path, old: str, new: str, key: str | None) -> None:
+    text = (PROFILES / "quick.yaml").read_text()
+    assert old in text
+    path = tmp_path / "params.yaml"
+    path.write_text(text.replace(old, new, 1))
+    if key is None:
+        load_params(path)
+        return
+    with pytest.raises(ConfigError) as err:
+        load_params(path)
+    assert str(err.value).startswith(key) and "\n" not in str(err.value), str(err.value)
+
+
+def test_replace_revalidates_and_models_are_frozen() -> None:
+    params = Params()
+    with pytest.raises(ValueError, match="finite"):
+        dataclasses.replace(params.pretrain, lr=NAN)
+    with pytest.raises(ValueError, match="unknown maze"):
+        dataclasses.replace(params, env=EnvParams(maze="mars"))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        params.pretrain.lr = 1.0  # type: ignore[misc]
+    assert dataclasses.replace(params.pretrain, steps=3).steps == 3
+    assert pickle.loads(pickle.dumps(load_params(REPO / "params.yaml"))) == load_params(REPO / "params.yaml")
+
+
+def test_describe_lists_the_task_and_the_stages_dvc_runs() -> None:
+    params = load_params(REPO / "params.yaml")
+    lines = describe(params)
+    assert lines[0].startswith("task: maze2d-umaze") and "300-step episodes" in lines[0]
+    stages = [line.strip().split(":")[0] for line in lines[lines.index("stages:") + 1 :]]
+    assert stages == stage_names(params)
+    assert stages[:5] == ["collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0"]
+    assert stages[5:10] == [
+        f"{s}@phase1" for s in ("generate", "discriminate", "finetune", "evaluate", "evaluate-coin")
+    ]
+    assert stages[-2:] == ["summarize", "report"] and len(stages) == 5 + 5 * 2 + 2
+    dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+    expanded = {f"{name}@{k}" if "foreach" in spec else name for name, spec in dvc.items() for k in params.phase_names}
+    assert set(stages) == expanded
 
 
 def test_phases_merge_their_overrides_over_the_evolution_defaults(tmp_path: Path) -> None:
@@ -194,7 +327,7 @@ def test_structural_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="top level"):
         load_params(path)
     path.write_text("pretrain: 5\n")
-    with pytest.raises(ConfigError, match="pretrain must be a mapping"):
+    with pytest.raises(ConfigError, match="pretrain: must be a mapping, got 5"):
         load_params(path)
     with pytest.raises(ConfigError, match="not found"):
         load_params(tmp_path / "missing.yaml")
@@ -219,7 +352,7 @@ def test_deep_merge() -> None:
 def test_cli_check_rejects_bad_params(tmp_path: Path, overlay: dict, key: str) -> None:
     bad = write_params(tmp_path, overlay).rename(tmp_path / "bad.yaml")
     result = CliRunner().invoke(app, ["check", "--params", str(bad)])
-    assert result.exit_code == 2, result.output
+    assert result.exit_code == 1, result.output  # `check` exits 1 on a bad value (stages exit 2)
     assert key in result.output
     assert "error:" in result.output
 
@@ -228,6 +361,7 @@ def test_cli_check_accepts_good_params() -> None:
     result = CliRunner().invoke(app, ["check", "--params", str(REPO / "params.yaml")])
     assert result.exit_code == 0, result.output
     assert "ok" in result.output
+    assert "pretrain:" in result.output and "evaluate@phase2" in result.output  # what it will run
 
 
 def test_cli_profile_writes_params(tmp_path: Path) -> None:

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+from torch import nn
 
-from adaptdiffuser.diffusion.conditions import apply_inpainting
+from adaptdiffuser.diffusion.conditions import Conditions, apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion, cosine_betas
+from adaptdiffuser.diffusion.guidance import GuidanceBase, ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler, Sampler, make_sampler
 from adaptdiffuser.models.unet import TemporalUnet
 
@@ -161,3 +163,73 @@ def test_short_training_reduces_loss() -> None:
         opt.step()
     after = eval_loss()
     assert after < before / 3, (before, after)
+
+
+class Recorder(GuidanceBase):
+    """Records the hooks' calls; moves nothing."""
+
+    def __init__(self) -> None:
+        self.before: list[tuple[int, float]] = []
+        self.shifts: list[float] = []
+
+    def before_denoise(self, x, t, variance, conditions, act_dim):
+        self.before.append((t, float(variance)))
+        return x
+
+    def mean_shift(self, mean, variance):
+        self.shifts.append(float(variance))
+        return super().mean_shift(mean, variance)
+
+
+@pytest.mark.parametrize("kind", sorted(SAMPLERS))
+def test_samplers_call_guidance_hooks_with_each_steps_variance(kind: str) -> None:
+    diff = tiny_diffusion().eval()
+    sampler: Sampler = SAMPLERS[kind]()
+    cond = {0: torch.rand(2, OBS)}
+    recorder = Recorder()
+    x = sampler.sample(diff, 2, cond, torch.Generator().manual_seed(0), guidance=recorder)
+    # the no-op hooks of the base class leave sampling unchanged
+    assert torch.equal(x, sampler.sample(diff, 2, cond, torch.Generator().manual_seed(0)))
+    steps = sampler.timesteps(diff)
+    assert [t for t, _ in recorder.before] == steps
+    ab = diff.alphas_cumprod.double()
+    for (t, var), t_prev in zip(recorder.before, [*steps[1:], -1], strict=True):
+        if kind == "ddpm":
+            expected = diff.posterior_variance[t].clamp(min=1e-20).item()
+        elif t_prev < 0:
+            expected = 0.0
+        else:
+            expected = ((1 - ab[t_prev]) / (1 - ab[t]) * (1 - ab[t] / ab[t_prev])).item()
+        assert var == pytest.approx(expected, rel=1e-4, abs=1e-12)
+    assert recorder.shifts == pytest.approx([v for _, v in recorder.before], rel=1e-6, abs=1e-12)
+
+
+class LinearValue(nn.Module):
+    """``V(x) = mean_t x[:, t, dim]``: its gradient is ``1 / horizon`` on that dimension, zero elsewhere."""
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return x[..., ACT].mean(dim=1)
+
+
+def test_value_guidance_step_by_hand() -> None:
+    x = torch.randn(3, H, OBS + ACT)
+    start = torch.randn(3, OBS)
+    cond: Conditions = {0: start}
+    x = apply_inpainting(x, cond, ACT)
+    variance = torch.tensor(0.25)
+    guide = ValueGuidance(LinearValue(), scale=2.0, n_guide_steps=3, t_stopgrad=2)
+    out = guide.before_denoise(x, 5, variance, cond, ACT)
+    expected = x.clone()
+    expected[..., ACT] += 3 * 2.0 * 0.25 / H
+    expected = apply_inpainting(expected, cond, ACT)  # the inpainted start stays put
+    torch.testing.assert_close(out, expected)
+    assert torch.equal(out[:, 0, ACT:], start)
+    assert not out.requires_grad
+    # unscaled by the variance
+    raw = ValueGuidance(LinearValue(), 2.0, 1, 0, scale_grad_by_std=False).before_denoise(x, 5, variance, {}, ACT)
+    torch.testing.assert_close(raw[..., ACT], x[..., ACT] + 2.0 / H)
+    # steps below t_stopgrad are left alone
+    assert torch.equal(guide.before_denoise(x, 1, variance, cond, ACT), x)
+    values, grad = guide.gradient(x, 5)
+    torch.testing.assert_close(values, x[..., ACT].mean(1))
+    assert torch.all(grad[..., ACT] == 1 / H) and torch.all(grad[..., ACT + 1 :] == 0)

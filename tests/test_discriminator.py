@@ -38,7 +38,7 @@ def expert_states(steps: int, start_cell: tuple[int, int], goal_cell: tuple[int,
     obs = env.reset(np.random.default_rng(0), cell=start_cell)
     states = [obs]
     for _ in range(steps - 1):
-        obs = env.step(env.expert_action(obs))
+        obs = env.step(env.expert_action(obs)).observation
         states.append(obs)
     return np.asarray(states)
 
@@ -72,7 +72,7 @@ def test_a_plan_the_controller_can_follow_is_kept_with_its_real_states_and_actio
     # replaying the kept actions from the first state reproduces the kept states exactly
     obs = env.set_state(tracked.observations[0])
     for action, expected in zip(tracked.actions[:-1], tracked.observations[1:], strict=True):
-        obs = env.step(action)
+        obs = env.step(action).observation
         np.testing.assert_allclose(obs, expected)
 
 

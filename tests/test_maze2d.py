@@ -34,7 +34,7 @@ def reaches_goal(env: Maze2D, cell: tuple[int, int], seed: int) -> int | None:
     env.seed_expert(seed)
     obs = env.reset(np.random.default_rng(seed), cell=cell)
     for t in range(env.episode_steps):
-        obs = env.step(env.expert_action(obs))
+        obs = env.step(env.expert_action(obs)).observation
         if env.reward(obs) == 1.0:
             return t
     return None
@@ -86,7 +86,7 @@ def test_expert_actions_are_bounded_and_stay_out_of_walls(umaze: Maze2D) -> None
     for _ in range(200):
         action = umaze.expert_action(obs)
         assert action.shape == (2,) and np.all(np.abs(action) <= 1.0)
-        obs = umaze.step(action)
+        obs = umaze.step(action).observation
         assert not umaze.in_wall(obs[:2])
 
 
@@ -129,13 +129,13 @@ def test_set_state_reads_back_and_is_markov(umaze: Maze2D) -> None:
     state = np.array([0.3, -0.2, 0.5, -0.4])
     np.testing.assert_allclose(umaze.set_state(state), state, atol=1e-12)
     action = np.array([0.7, -0.3])
-    first = umaze.step(action)
+    first = umaze.step(action).observation
     assert not np.allclose(first, state)
     assert first[0] > state[0] and first[1] < state[1]  # it moves along its velocity
     umaze.set_state(np.array([-1.0, 1.0, 0.0, 0.0]))
     umaze.step(np.array([-1.0, 1.0]))
     umaze.set_state(state)
-    np.testing.assert_allclose(umaze.step(action), first, atol=1e-10)
+    np.testing.assert_allclose(umaze.step(action).observation, first, atol=1e-10)
 
 
 def test_in_wall(umaze: Maze2D) -> None:
@@ -217,7 +217,7 @@ def test_tracking_action_moves_towards_target(p_gain: float, d_gain: float) -> N
     for _ in range(300):
         action = env.tracking_action(obs, target)
         assert np.all(np.abs(action) <= 1.0)
-        obs = env.step(action)
+        obs = env.step(action).observation
         distances.append(np.linalg.norm(obs[:2] - target[:2]))
     assert distances[10] < distances[0]
     assert distances[-1] < 0.1 * distances[0]  # it settles at the target within an episode

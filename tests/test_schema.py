@@ -254,3 +254,27 @@ def test_writing_episodes_out_of_order_is_refused(tmp_path: Path) -> None:
     with pytest.raises(SchemaError, match="episode_id"):
         write_trajectories(path, traj)
     assert not path.exists()
+
+
+def test_full_simulator_state_round_trips_exactly_in_float64(tmp_path: Path) -> None:
+    traj = make_traj([4, 2])
+    state = np.random.default_rng(3).normal(size=(6, 13))  # float64: MuJoCo qpos + qvel must restore exactly
+    traj.sim_state = state
+    traj.metadata = make_metadata("hopper-medium", OBS_DIM, ACT_DIM, "expert", {}, state_dim=13)
+    write_trajectories(tmp_path / "s.parquet", traj)
+    back = read_trajectories(tmp_path / "s.parquet")
+    assert back.metadata["state_dim"] == 13 and back.sim_state.dtype == np.float64
+    np.testing.assert_array_equal(back.sim_state, state)
+    assert "sim_state" not in back.extra
+
+
+def test_state_column_must_match_the_declared_state_dim(tmp_path: Path) -> None:
+    traj = make_traj([3])
+    traj.metadata = make_metadata("hopper-medium", OBS_DIM, ACT_DIM, "expert", {}, state_dim=5)
+    with pytest.raises(SchemaError, match="'sim_state' must have shape"):
+        write_trajectories(tmp_path / "s.parquet", traj)
+    traj.metadata = make_metadata("hopper-medium", OBS_DIM, ACT_DIM, "expert", {})
+    traj.sim_state = np.zeros((3, 5))
+    with pytest.raises(SchemaError, match="state_dim' is 0"):
+        write_trajectories(tmp_path / "s.parquet", traj)
+    assert not (tmp_path / "s.parquet").exists()

@@ -222,9 +222,17 @@ def profile(
 
 @app.command()
 def check(params: ParamsPath = Path("params.yaml")) -> None:
-    """Validate a params file and exit."""
-    _params(params)
+    """Validate a params file (exit 1 on a bad value, naming the key) and print what it will run."""
+    from adaptdiffuser.config import describe
+
+    try:
+        p = load_params(params)
+    except ConfigError as err:
+        typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=1) from err
     typer.echo(f"{params}: ok")
+    for line in describe(p):
+        typer.echo(line)
 
 
 def run_stage(stage: str) -> None:

@@ -8,10 +8,10 @@ from dataclasses import dataclass, field
 import numpy as np
 from tqdm import tqdm
 
-from adaptdiffuser.envs.base import PlanningEnv
+from adaptdiffuser.families.base import Simulator
 
-EnvFactory = Callable[[], PlanningEnv]
-ResetFn = Callable[[PlanningEnv, int], np.ndarray]
+EnvFactory = Callable[[], Simulator]
+ResetFn = Callable[[Simulator, int], np.ndarray]
 
 
 def episode_rng(seed: int, episode: int) -> np.random.Generator:
@@ -38,10 +38,10 @@ class Controller:
     #: the state sequences planned at t = 0 for the current batch, if the controller plans (for pictures)
     first_plans: np.ndarray | None = None
 
-    def begin(self, envs: list[PlanningEnv], obs: np.ndarray, episodes: list[int]) -> None:
+    def begin(self, envs: list[Simulator], obs: np.ndarray, episodes: list[int]) -> None:
         """Called once per batch after reset."""
 
-    def act(self, envs: list[PlanningEnv], obs: np.ndarray, t: int) -> np.ndarray:
+    def act(self, envs: list[Simulator], obs: np.ndarray, t: int) -> np.ndarray:
         raise NotImplementedError
 
 
@@ -84,6 +84,8 @@ class EpisodeBatchResult:
     goals: list[np.ndarray] = field(default_factory=list)
     executed: list[np.ndarray] = field(default_factory=list)
     plans: list[np.ndarray | None] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+    terminated: list[bool] = field(default_factory=list)
 
 
 def run_episodes(
@@ -97,10 +99,12 @@ def run_episodes(
     reset: ResetFn | None = None,
 ) -> EpisodeBatchResult:
     """Run ``n_episodes`` protocol episodes in batches of ``batch_size``; episode ``i`` starts from
-    ``reset(env, i)``, by default the protocol's random start drawn from :func:`episode_rng`."""
+    ``reset(env, i)``, by default the protocol's random start drawn from :func:`episode_rng`. An episode ends
+    after ``episode_steps`` steps or when its simulator reports termination; a terminated simulator is not
+    stepped again (its observation stays at the last state, its reward at zero) while the others go on."""
     if reset is None:
 
-        def reset(env: PlanningEnv, episode: int) -> np.ndarray:
+        def reset(env: Simulator, episode: int) -> np.ndarray:
             return env.reset(episode_rng(seed, episode))
 
     envs = [make_env() for _ in range(min(batch_size, n_episodes))]
@@ -114,23 +118,34 @@ def run_episodes(
         trace = np.empty((horizon + 1, len(episodes), obs.shape[1]))
         trace[0] = obs
         rewards = np.zeros((horizon, len(episodes)))
+        lengths = np.full(len(episodes), horizon)
+        done = np.zeros(len(episodes), dtype=bool)
         controller.begin(batch_envs, obs, episodes)
         for t in range(horizon):
             actions = controller.act(batch_envs, obs, t)
-            obs = np.stack([env.step(a) for env, a in zip(batch_envs, actions, strict=True)])
+            obs = obs.copy()
+            for i in np.flatnonzero(~done):
+                step = batch_envs[i].step(actions[i])
+                obs[i], rewards[t, i] = step.observation, step.reward
+                if step.terminated:
+                    done[i], lengths[i] = True, t + 1
             trace[t + 1] = obs
-            rewards[t] = [env.reward(o) for env, o in zip(batch_envs, obs, strict=True)]
+            if done.all():
+                trace[t + 2 :] = obs
+                break
         plans = controller.first_plans
         for i, ep in enumerate(episodes):
             hits = np.flatnonzero(rewards[:, i] > 0)
             result.episodes.append(ep)
             result.returns.append(float(rewards[:, i].sum()))
-            result.final_success.append(bool(rewards[-1, i] > 0))
+            result.final_success.append(bool(rewards[lengths[i] - 1, i] > 0))
             result.first_goal_step.append(int(hits[0]) if len(hits) else -1)
             result.starts.append(trace[0, i])
             result.goals.append(batch_envs[i].goal_state())
-            result.executed.append(trace[:, i])
+            result.executed.append(trace[: lengths[i] + 1, i])
             result.plans.append(None if plans is None else plans[i])
+            result.lengths.append(int(lengths[i]))
+            result.terminated.append(bool(done[i]))
         bar.update(len(episodes))
     bar.close()
     return result

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import ModelBundle
-from adaptdiffuser.diffusion.guidance import Guidance, Objective
+from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, Objective, ValueGuidance
 from adaptdiffuser.diffusion.samplers import Sampler
 from adaptdiffuser.envs.base import PlanningEnv
 from adaptdiffuser.evaluation import Controller
@@ -35,13 +35,27 @@ class Planner:
         """Guidance by ``objective`` (a function of raw states) with scale ``alpha``, for :meth:`plan`."""
         return Guidance(objective, alpha, lambda x: self.normalizer.unnormalize(x)[..., self.act_dim :])
 
-    def plan(self, starts: np.ndarray, goals: np.ndarray, seed: int, guidance: Guidance | None = None) -> np.ndarray:
-        """Plans ``[batch, horizon, act_dim + obs_dim]`` in raw units, from ``starts`` to ``goals``, optionally
-        guided (see :meth:`guidance`)."""
-        conditions = {0: self._normalize_states(starts), self.horizon - 1: self._normalize_states(goals)}
-        generator = torch.Generator(device=self.device).manual_seed(int(seed))
-        x = self.sampler.sample(self.model, len(starts), conditions, generator, guidance)
+    def plan(
+        self, starts: np.ndarray, goals: np.ndarray | None, seed: int, guidance: GuidanceBase | None = None
+    ) -> np.ndarray:
+        """Plans ``[batch, horizon, act_dim + obs_dim]`` in raw units from ``starts`` (and to ``goals`` when the
+        model is goal-conditioned; ``None`` for start-conditioned models), optionally guided."""
+        x = self.sample(starts, goals, seed, guidance)
         return self.normalizer.unnormalize(x.double().cpu().numpy())
+
+    def sample(
+        self, starts: np.ndarray, goals: np.ndarray | None, seed: int, guidance: GuidanceBase | None = None
+    ) -> torch.Tensor:
+        """Like :meth:`plan`, but the normalized trajectories as a tensor on the planner's device."""
+        conditions = {0: self._normalize_states(starts)}
+        if goals is not None:
+            conditions[self.horizon - 1] = self._normalize_states(goals)
+        generator = torch.Generator(device=self.device).manual_seed(int(seed))
+        return self.sampler.sample(self.model, len(starts), conditions, generator, guidance)
+
+    def actions(self, x: torch.Tensor) -> np.ndarray:
+        """The raw first actions ``[batch, act_dim]`` of normalized trajectories ``x``."""
+        return self.normalizer.unnormalize(x[:, 0].double().cpu().numpy())[:, : self.act_dim]
 
 
 class PlanFollower:
@@ -95,3 +109,34 @@ class PlannerController(Controller):
             if self.first_plans is None:
                 self.first_plans = obs_part
         return np.stack([f.act(o, t - self.plan_time) for f, o in zip(self.followers, obs, strict=True)])
+
+
+class ValuePlanningController(Controller):
+    """Diffuser's locomotion controller: at every step, sample ``n_samples`` start-conditioned plans per episode
+    from the current observation (all episodes in one batch), guided by the learned value, and execute the first
+    action of each episode's highest-value plan. The plans of step 0 are kept for pictures."""
+
+    def __init__(self, planner: Planner, guidance: ValueGuidance, n_samples: int, seed: int) -> None:
+        if n_samples <= 0:
+            raise ValueError(f"n_samples must be positive, got {n_samples}")
+        self.planner = planner
+        self.guidance = guidance
+        self.n_samples = n_samples
+        self.seed = seed
+
+    def begin(self, envs, obs, episodes):
+        self.episodes = episodes
+        self.first_plans = None
+
+    def act(self, envs, obs, t):
+        n = self.n_samples
+        x = self.planner.sample(
+            np.repeat(obs, n, axis=0), None, derive_seed(self.seed, self.episodes[0], t), self.guidance
+        )
+        values = self.guidance.values(x).reshape(len(obs), n)
+        best = values.argmax(dim=1) + torch.arange(len(obs), device=x.device) * n
+        chosen = x[best]
+        if self.first_plans is None:
+            plans = self.planner.normalizer.unnormalize(chosen.double().cpu().numpy())
+            self.first_plans = plans[:, :, self.planner.act_dim :]
+        return self.planner.actions(chosen)

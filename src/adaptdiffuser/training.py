@@ -15,6 +15,7 @@ from tqdm import tqdm
 from adaptdiffuser.checkpoint import ModelBundle
 from adaptdiffuser.config import PretrainParams
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
+from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.io import atomic_path
 
 LogFn = Callable[[int, float], None]
@@ -67,7 +68,8 @@ def train(
             tqdm.write(f"resuming training from step {start} ({resume_path})")
         else:
             tqdm.write(f"ignoring resume state {resume_path}: it belongs to other params or data")
-    act_dim, horizon = model.act_dim, model.horizon
+    act_dim = model.act_dim
+    conditioning = bundle.config.get("conditioning", "start_goal")
     bar = tqdm(
         range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress, mininterval=2.0
     )
@@ -75,7 +77,7 @@ def train(
     for step in bar:
         for _ in range(cfg.grad_accum):
             x0 = torch.from_numpy(dataset.sample(cfg.batch_size, rng)).to(device)
-            cond = {0: x0[:, 0, act_dim:], horizon - 1: x0[:, -1, act_dim:]}
+            cond = training_conditions(conditioning, x0, act_dim)
             loss = model.loss(x0, cond, generator=gen) / cfg.grad_accum
             loss.backward()
             running.append(loss.item() * cfg.grad_accum)

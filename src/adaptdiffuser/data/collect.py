@@ -29,7 +29,7 @@ def collect_expert_stream(env: Maze2D, steps: int, seed: int, progress: bool = T
         action = env.expert_action(obs)
         observations[t] = obs
         actions[t] = action
-        obs = env.step(action)
+        obs = env.step(action).observation
     at_goal = np.linalg.norm(observations[:, :2] - eval_goal, axis=1) <= env.goal_radius
     timeout = np.zeros(steps, dtype=bool)
     timeout[:-1] = at_goal[:-1] & ~at_goal[1:]

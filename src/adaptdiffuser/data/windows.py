@@ -85,4 +85,5 @@ def subset_episodes(traj: Trajectories, fraction: float, rng: np.random.Generato
         timeout=traj.timeout[rows],
         metadata=traj.metadata,
         extra={name: values[rows] for name, values in traj.extra.items()},
+        sim_state=None if traj.sim_state is None else traj.sim_state[rows],
     )

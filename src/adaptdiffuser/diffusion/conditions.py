@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 
 Conditions = dict[int, torch.Tensor]
@@ -15,3 +17,27 @@ def apply_inpainting(x: torch.Tensor, conditions: Conditions, act_dim: int) -> t
     for t, state in conditions.items():
         x[:, t, act_dim:] = state
     return x
+
+
+def start_conditions(x0: torch.Tensor, act_dim: int) -> Conditions:
+    """Plans start at the current state (locomotion: Diffuser's value-guided planner)."""
+    return {0: x0[:, 0, act_dim:]}
+
+
+def start_goal_conditions(x0: torch.Tensor, act_dim: int) -> Conditions:
+    """Plans start at the current state and end at the goal state (navigation by inpainting)."""
+    return {0: x0[:, 0, act_dim:], x0.shape[1] - 1: x0[:, -1, act_dim:]}
+
+
+#: conditioning by name (stored in a model bundle's config): the conditions of clean training windows
+CONDITIONINGS: dict[str, Callable[[torch.Tensor, int], Conditions]] = {
+    "start": start_conditions,
+    "start_goal": start_goal_conditions,
+}
+
+
+def training_conditions(kind: str, x0: torch.Tensor, act_dim: int) -> Conditions:
+    """The inpainting conditions of training windows ``x0`` for the conditioning named ``kind``."""
+    if kind not in CONDITIONINGS:
+        raise ValueError(f"unknown conditioning {kind!r}; known: {sorted(CONDITIONINGS)}")
+    return CONDITIONINGS[kind](x0, act_dim)

@@ -1,16 +1,25 @@
-"""Reward-gradient guidance (paper Eq. 5, appendix A): at each denoising step the mean moves by
-``alpha * variance * grad J``, where J is a differentiable objective of the trajectory in raw units.
+"""Guidance of the denoising chain, one interface for two kinds.
 
-Sign convention: J is a *reward* (higher is better), so a positive ``alpha`` pulls plans toward what J prefers.
-The paper writes the coin objective as the distance ``sum_t ||s_t - s_c||_2`` and, for the Diffuser baseline,
-uses negative scales ({-50, -100, -200}); our :class:`CoinObjective` is the negative of that distance, so the
-paper's ``alpha = -50`` on the distance is our ``alpha = 50``.
+:class:`GuidanceBase` has two hooks the samplers call at every step, never checking the concrete type:
+``before_denoise`` (may move the noisy ``x`` before the denoiser sees it; default identity) and ``mean_shift``
+(added to the step's mean; default zero). Both get the variance of the step: the DDPM posterior variance, or for
+strided DDIM the variance of the equivalent stochastic jump (zero for the final jump to the clean end).
 
-Scale: the gradient is taken with respect to the *normalized* trajectory (the sampler's space) of J evaluated on
-raw states, and multiplied by the variance of the step (the DDPM posterior variance; for strided DDIM the
-variance of the equivalent stochastic jump). With Maze2D's min/max normalizer (U-Maze positions span about 2.1
-maze units, mapped to a normalized range of 2), each state moves by about ``1.1 * alpha * variance``
-normalized units per step.
+* :class:`Guidance` -- reward-gradient guidance (AdaptDiffuser paper Eq. 5, appendix A, Maze2D): the step's mean
+  moves by ``alpha * variance * grad J``, where J is a differentiable objective of the trajectory in raw units.
+* :class:`ValueGuidance` -- Diffuser's locomotion recipe: before each denoising step, ``n_guide_steps`` gradient
+  ascent moves on a learned value ``V(x_t, t)``, each followed by re-inpainting; :meth:`ValueGuidance.values`
+  scores finished samples so a controller can keep the best of N.
+
+Reward sign convention: J is a *reward* (higher is better), so a positive ``alpha`` pulls plans toward what J
+prefers. The paper writes the coin objective as the distance ``sum_t ||s_t - s_c||_2`` and, for the Diffuser
+baseline, uses negative scales ({-50, -100, -200}); our :class:`CoinObjective` is the negative of that distance, so
+the paper's ``alpha = -50`` on the distance is our ``alpha = 50``.
+
+Scale: the reward gradient is taken with respect to the *normalized* trajectory (the sampler's space) of J
+evaluated on raw states, and multiplied by the variance of the step. With Maze2D's min/max normalizer (U-Maze
+positions span about 2.1 maze units, mapped to a normalized range of 2), each state moves by about
+``1.1 * alpha * variance`` normalized units per step.
 """
 
 from __future__ import annotations
@@ -19,6 +28,9 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 
 import torch
+from torch import nn
+
+from adaptdiffuser.diffusion.conditions import Conditions, apply_inpainting
 
 
 class Objective(ABC):
@@ -41,7 +53,21 @@ class CoinObjective(Objective):
         return -torch.sqrt((delta**2).sum(-1) + self.eps**2).sum(-1)
 
 
-class Guidance:
+class GuidanceBase:
+    """Hooks a sampler calls at each denoising step ``t`` (both are no-ops here; subclasses override one)."""
+
+    def before_denoise(
+        self, x: torch.Tensor, t: int, variance: torch.Tensor, conditions: Conditions, act_dim: int
+    ) -> torch.Tensor:
+        """The noisy trajectory the denoiser will see at step ``t`` (default: ``x`` unchanged)."""
+        return x
+
+    def mean_shift(self, mean: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
+        """What to add to the step's mean before noise and inpainting (default: zero)."""
+        return torch.zeros_like(mean)
+
+
+class Guidance(GuidanceBase):
     """``alpha`` times the gradient of ``objective`` at a normalized trajectory; ``to_states`` maps a normalized
     trajectory ``[batch, horizon, transition]`` to raw states (differentiably)."""
 
@@ -59,3 +85,59 @@ class Guidance:
             score = self.objective(self.to_states(xg)).sum()
             (grad,) = torch.autograd.grad(score, xg)
         return self.alpha * variance * grad
+
+    def mean_shift(self, mean: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
+        """The sampler hook: :meth:`shift`."""
+        return self.shift(mean, variance)
+
+
+class ValueGuidance(GuidanceBase):
+    """Diffuser's value guidance. ``value_net(x, t)`` maps normalized noisy trajectories ``[batch, horizon,
+    transition]`` and steps ``[batch]`` to values ``[batch]``. At each step ``t >= t_stopgrad``, ``n_guide_steps``
+    times: ``x += scale * g`` with ``g = dV/dx`` (times the step's variance if ``scale_grad_by_std``, as Diffuser
+    does despite the name), then the inpainting conditions are re-applied. Steps ``t < t_stopgrad`` are unguided.
+    The network is used as given (put it in eval mode and on the sampler's device)."""
+
+    def __init__(
+        self,
+        value_net: nn.Module,
+        scale: float,
+        n_guide_steps: int = 2,
+        t_stopgrad: int = 2,
+        scale_grad_by_std: bool = True,
+    ) -> None:
+        if n_guide_steps < 0:
+            raise ValueError(f"n_guide_steps must be non-negative, got {n_guide_steps}")
+        self.value_net = value_net
+        self.scale = float(scale)
+        self.n_guide_steps = int(n_guide_steps)
+        self.t_stopgrad = int(t_stopgrad)
+        self.scale_grad_by_std = scale_grad_by_std
+
+    def gradient(self, x: torch.Tensor, t: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Values ``[batch]`` of ``x`` at step ``t`` and their gradient ``dV/dx``."""
+        tt = torch.full((x.shape[0],), t, device=x.device, dtype=torch.long)
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            values = self.value_net(xg, tt)
+            (grad,) = torch.autograd.grad(values.sum(), xg)
+        return values.detach(), grad
+
+    def before_denoise(
+        self, x: torch.Tensor, t: int, variance: torch.Tensor, conditions: Conditions, act_dim: int
+    ) -> torch.Tensor:
+        """``n_guide_steps`` value-ascent moves of ``x`` at step ``t``, each re-inpainted."""
+        if t < self.t_stopgrad or self.scale == 0.0:
+            return x  # Diffuser zeroes the gradient here; skipping the value network gives the same x
+        step = self.scale * variance if self.scale_grad_by_std else self.scale
+        for _ in range(self.n_guide_steps):
+            _, grad = self.gradient(x, t)
+            x = apply_inpainting(x + step * grad, conditions, act_dim)
+        return x
+
+    @torch.no_grad()
+    def values(self, x: torch.Tensor, t: int = 0) -> torch.Tensor:
+        """The value ``[batch]`` of trajectories ``x`` at step ``t`` (``0``: finished samples), e.g. to pick the
+        best of N plans with ``x[values.argmax()]``."""
+        tt = torch.full((x.shape[0],), t, device=x.device, dtype=torch.long)
+        return self.value_net(x, tt)

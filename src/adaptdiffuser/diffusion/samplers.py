@@ -1,5 +1,6 @@
 """One sampler interface, two implementations: the full DDPM chain and a strided deterministic DDIM; both take
-optional reward-gradient guidance, combinable with inpainting."""
+optional guidance (reward-gradient or value, see :mod:`adaptdiffuser.diffusion.guidance`), combinable with
+inpainting."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import torch
 
 from adaptdiffuser.diffusion.conditions import Conditions, apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
-from adaptdiffuser.diffusion.guidance import Guidance
+from adaptdiffuser.diffusion.guidance import GuidanceBase
 
 
 class Sampler(ABC):
@@ -18,6 +19,10 @@ class Sampler(ABC):
     @abstractmethod
     def timesteps(self, diffusion: GaussianDiffusion) -> list[int]:
         """The diffusion steps visited, from noisiest to cleanest."""
+
+    @abstractmethod
+    def log_variance(self, diffusion: GaussianDiffusion, t: int, t_prev: int) -> torch.Tensor:
+        """The log-variance (a scalar tensor) of the move from step ``t`` to ``t_prev``; ``-inf`` for none."""
 
     @abstractmethod
     def step(
@@ -36,22 +41,26 @@ class Sampler(ABC):
         batch: int,
         conditions: Conditions,
         generator: torch.Generator,
-        guidance: Guidance | None = None,
+        guidance: GuidanceBase | None = None,
     ) -> torch.Tensor:
-        """Run the chain from pure noise; return normalized trajectories. With ``guidance``, each step's mean
-        moves by ``alpha * variance * grad J`` before noise and inpainting (paper Eq. 5)."""
+        """Run the chain from pure noise; return normalized trajectories. With ``guidance``, each step first
+        calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), then adds
+        ``guidance.mean_shift`` to the step's mean (reward guidance, paper Eq. 5) before noise and inpainting."""
         device = next(diffusion.parameters()).device
         shape = (batch, diffusion.horizon, diffusion.transition_dim)
         x = torch.randn(shape, device=device, generator=generator)
-        x = apply_inpainting(x, conditions, diffusion.act_dim)
+        act_dim = diffusion.act_dim
+        x = apply_inpainting(x, conditions, act_dim)
         steps = self.timesteps(diffusion)
         for t, t_prev in zip(steps, [*steps[1:], -1], strict=True):
+            if guidance is not None:
+                x = guidance.before_denoise(x, t, self.log_variance(diffusion, t, t_prev).exp(), conditions, act_dim)
             mean, log_var = self.step(diffusion, x, t, t_prev)
             if guidance is not None:
-                mean = mean + guidance.shift(mean, log_var.exp())
+                mean = mean + guidance.mean_shift(mean, log_var.exp())
             if self.stochastic and t_prev >= 0:
                 mean = mean + (0.5 * log_var).exp() * torch.randn(x.shape, device=x.device, generator=generator)
-            x = apply_inpainting(mean, conditions, diffusion.act_dim)
+            x = apply_inpainting(mean, conditions, act_dim)
         return x
 
 
@@ -63,10 +72,13 @@ class DDPMSampler(Sampler):
 
     stochastic = True
 
+    def log_variance(self, diffusion: GaussianDiffusion, t: int, t_prev: int) -> torch.Tensor:
+        return diffusion.posterior_log_variance[t]
+
     def step(self, diffusion, x, t, t_prev):
         tt = torch.full((x.shape[0],), t, device=x.device, dtype=torch.long)
-        mean, log_var = diffusion.posterior(diffusion.predict_x0(x, tt), x, tt)
-        return mean, log_var
+        mean, _ = diffusion.posterior(diffusion.predict_x0(x, tt), x, tt)
+        return mean, self.log_variance(diffusion, t, t_prev)
 
 
 class DDIMSampler(Sampler):
@@ -82,17 +94,23 @@ class DDIMSampler(Sampler):
         grid = torch.linspace(diffusion.n_steps - 1, 0, n).round().long().tolist()
         return list(dict.fromkeys(grid))
 
+    def log_variance(self, diffusion: GaussianDiffusion, t: int, t_prev: int) -> torch.Tensor:
+        # the variance of the equivalent stochastic (DDPM) jump t -> t_prev, used only to scale guidance
+        if t_prev < 0:
+            return torch.full((), float("-inf"), device=diffusion.alphas_cumprod.device)
+        ab, ab_prev = diffusion.alphas_cumprod[t], diffusion.alphas_cumprod[t_prev]
+        variance = (1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev)
+        return variance.clamp(min=1e-20).log()
+
     def step(self, diffusion, x, t, t_prev):
         tt = torch.full((x.shape[0],), t, device=x.device, dtype=torch.long)
         x0 = diffusion.predict_x0(x, tt)
-        ab = diffusion.alphas_cumprod[t]
+        log_var = self.log_variance(diffusion, t, t_prev)
         if t_prev < 0:
-            return x0, torch.full((), float("-inf"), device=x.device)
-        ab_prev = diffusion.alphas_cumprod[t_prev]
+            return x0, log_var
+        ab, ab_prev = diffusion.alphas_cumprod[t], diffusion.alphas_cumprod[t_prev]
         eps = (x - ab.sqrt() * x0) / (1 - ab).sqrt()
-        # the variance of the equivalent stochastic (DDPM) jump t -> t_prev, used only to scale guidance
-        variance = (1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev)
-        return ab_prev.sqrt() * x0 + (1 - ab_prev).sqrt() * eps, variance.clamp(min=1e-20).log()
+        return ab_prev.sqrt() * x0 + (1 - ab_prev).sqrt() * eps, log_var
 
 
 def make_sampler(kind: str, steps: int) -> Sampler:

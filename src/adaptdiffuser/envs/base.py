@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from abc import ABC, abstractmethod
+from abc import abstractmethod
 
 import numpy as np
 
+from adaptdiffuser.families.base import Simulator
 
-class PlanningEnv(ABC):
+
+class PlanningEnv(Simulator):
     """A simulator with a task: reset, step, the protocol's reward, an expert, a tracking controller, a picture.
 
     Observations and actions are flat float vectors. One instance simulates one episode at a time; batch work
@@ -18,18 +20,6 @@ class PlanningEnv(ABC):
     obs_dim: int
     act_dim: int
     episode_steps: int
-
-    @abstractmethod
-    def reset(self, rng: np.random.Generator) -> np.ndarray:
-        """Start an episode from the protocol's start distribution; return the first observation."""
-
-    @abstractmethod
-    def set_state(self, obs: np.ndarray) -> np.ndarray:
-        """Put the simulator exactly at the state ``obs``; return the observation it now reports."""
-
-    @abstractmethod
-    def step(self, action: np.ndarray) -> np.ndarray:
-        """Apply one action; return the next observation (episodes never end early)."""
 
     @abstractmethod
     def reward(self, obs: np.ndarray) -> float:

@@ -13,6 +13,7 @@ import numpy as np
 
 from adaptdiffuser.envs.base import PlanningEnv
 from adaptdiffuser.envs.layouts import EPISODE_STEPS, MAZES, Layout, parse_layout
+from adaptdiffuser.families.base import Step
 
 Cell = tuple[int, int]
 
@@ -57,6 +58,7 @@ class Maze2D(PlanningEnv):
 
     obs_dim = 4
     act_dim = 2
+    state_dim = 4
 
     def __init__(
         self,
@@ -158,10 +160,15 @@ class Maze2D(PlanningEnv):
         self._obs = np.concatenate([self._point.data.qpos, self._point.data.qvel]).copy()
         return self._obs.copy()
 
-    def step(self, action: np.ndarray) -> np.ndarray:
+    def get_state(self) -> np.ndarray:
+        """The full state is the observation (qpos = position, qvel = velocity)."""
+        return self._obs.copy()
+
+    def step(self, action: np.ndarray) -> Step:
+        """One step of the point mass; the reward is the protocol's for the state reached, never terminal."""
         obs, *_ = self._point.step(np.asarray(action, dtype=np.float64))
         self._obs = obs.copy()
-        return obs
+        return Step(obs, self.reward(obs), False)
 
     def reward(self, obs: np.ndarray) -> float:
         return float(np.linalg.norm(np.asarray(obs)[:2] - self.goal_xy) <= self.goal_radius)

@@ -55,7 +55,7 @@ def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | 
     actions, errors, rewards = [], [], [env.reward(obs)]
     for t in range(len(planned_states) - 1):
         action = follower.act(obs, t)
-        obs = env.step(action)
+        obs = env.step(action).observation
         observations.append(obs)
         actions.append(action)
         errors.append(env.tracking_error(obs, follower.waypoint(t)))

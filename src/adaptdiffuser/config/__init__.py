@@ -1,0 +1,65 @@
+"""The one config loader: ``params.yaml`` into typed, validated sections (pydantic models), and profile switching.
+
+Every stage loads the whole file through :func:`load_params`, so a bad value anywhere is rejected before any
+work starts, with a one-line :class:`ConfigError` naming the key (for example ``pretrain.lr: must be a finite
+number, got nan``).
+
+Modules: ``fields`` (value types and range checks), ``sections`` (one model per section), ``phases`` (the phase
+chain), ``sweep`` (sweep settings and search space), ``params`` (the whole file and its cross-section checks),
+``loader`` (YAML in, :class:`ConfigError` out), ``profiles`` (profile switching), ``describe`` (what will run).
+"""
+
+from adaptdiffuser.config.describe import describe, stage_names
+from adaptdiffuser.config.errors import ConfigError
+from adaptdiffuser.config.loader import load_params, params_from_dict
+from adaptdiffuser.config.params import Params, check_cross_fields
+from adaptdiffuser.config.phases import PhaseParams
+from adaptdiffuser.config.profiles import apply_profile, deep_merge
+from adaptdiffuser.config.sections import (
+    SELECTION_RULES,
+    CollectParams,
+    DiffusionParams,
+    DiscriminateParams,
+    EnvParams,
+    EvaluateParams,
+    EvolutionParams,
+    ExpertParams,
+    FinetuneParams,
+    GenerateParams,
+    GoldCoinParams,
+    ModelParams,
+    PlannerParams,
+    PretrainParams,
+)
+from adaptdiffuser.config.sweep import SWEEP_OBJECTIVES, SearchDimension, SweepParams, set_dotted
+
+__all__ = [
+    "SELECTION_RULES",
+    "SWEEP_OBJECTIVES",
+    "CollectParams",
+    "ConfigError",
+    "DiffusionParams",
+    "DiscriminateParams",
+    "EnvParams",
+    "EvaluateParams",
+    "EvolutionParams",
+    "ExpertParams",
+    "FinetuneParams",
+    "GenerateParams",
+    "GoldCoinParams",
+    "ModelParams",
+    "Params",
+    "PhaseParams",
+    "PlannerParams",
+    "PretrainParams",
+    "SearchDimension",
+    "SweepParams",
+    "apply_profile",
+    "check_cross_fields",
+    "deep_merge",
+    "describe",
+    "load_params",
+    "params_from_dict",
+    "set_dotted",
+    "stage_names",
+]

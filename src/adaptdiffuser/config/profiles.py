@@ -1,0 +1,46 @@
+"""Profiles: ``profiles/quick.yaml`` overlaid with ``profiles/<name>.yaml``, written as ``params.yaml``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+
+from adaptdiffuser.config.errors import ConfigError
+from adaptdiffuser.io import atomic_path
+
+
+def deep_merge(base: dict, overlay: dict) -> dict:
+    """``base`` with ``overlay`` merged in, recursively for nested mappings."""
+    merged = dict(base)
+    for key, value in overlay.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def apply_profile(profile: str, profiles_dir: str | Path = "profiles", params_path: str | Path = "params.yaml") -> Path:
+    """Write ``params.yaml`` as the quick profile overlaid with ``profiles/<profile>.yaml``; validate first."""
+    from adaptdiffuser.config.loader import load_params  # the loader imports this module (deep_merge)
+
+    profiles_dir = Path(profiles_dir)
+    base_path = profiles_dir / "quick.yaml"
+    overlay_path = profiles_dir / f"{profile}.yaml"
+    if not overlay_path.exists():
+        known = sorted(p.stem for p in profiles_dir.glob("*.yaml"))
+        raise ConfigError(f"unknown profile {profile!r}; known profiles: {known}")
+    base_text = base_path.read_text()
+    base = yaml.safe_load(base_text) or {}
+    merged = deep_merge(base, yaml.safe_load(overlay_path.read_text()) or {})
+    if merged == base:  # the quick profile itself: keep its comments
+        text = base_text
+    else:
+        header = f"# Written by `adaptdiffuser profile {profile}`: profiles/quick.yaml + profiles/{profile}.yaml\n"
+        text = header + yaml.safe_dump(merged, sort_keys=False)
+    params_path = Path(params_path)
+    with atomic_path(params_path) as tmp:
+        tmp.write_text(text)
+        load_params(tmp)
+    return params_path

@@ -1,0 +1,172 @@
+"""One pydantic model per ``params.yaml`` section: types, defaults and the checks a single field can make.
+
+The models are frozen pydantic dataclasses with unknown keys forbidden, so ``dataclasses.asdict`` and
+``dataclasses.replace`` keep working (``replace`` validates the new values).
+"""
+
+from __future__ import annotations
+
+from dataclasses import field
+from typing import Annotated
+
+from pydantic import ConfigDict, model_validator
+from pydantic.dataclasses import dataclass
+
+from adaptdiffuser.config.errors import ConfigError
+from adaptdiffuser.config.fields import (
+    FRACTION,
+    HALF_CELL,
+    ODD,
+    UNIT,
+    UNIT_OPEN,
+    Bool,
+    Float,
+    Int,
+    NonNegativeFloat,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    Sampler,
+    Seed,
+    Str,
+    one_of,
+    requires,
+)
+from adaptdiffuser.envs.layouts import MAZES, parse_layout
+
+SECTION = ConfigDict(extra="forbid")
+SELECTION_RULES = ("paper", "quantile", "top_k")
+
+DimMults = Annotated[
+    list[Int], requires(lambda v: len(v) > 0 and all(m > 0 for m in v), "a non-empty list of positive integers")
+]
+
+
+@dataclass(frozen=True, config=SECTION)
+class EnvParams:
+    maze: Str = "umaze"
+    layout: list[Str] | None = None
+    episode_steps: PositiveInt | None = None
+    goal_radius: PositiveFloat = 0.5
+    reset_pos_noise: NonNegativeFloat = 0.1
+    reset_vel_noise: NonNegativeFloat = 0.1
+    random_goal: Bool = False
+
+    @model_validator(mode="after")
+    def _maze_exists(self) -> EnvParams:
+        if self.layout is not None:
+            try:
+                parse_layout(self.layout)
+            except ValueError as err:
+                raise ConfigError(f"env.layout: {err}") from None
+        elif self.maze not in MAZES:
+            raise ConfigError(f"env.maze: unknown maze {self.maze!r}; choose one of {sorted(MAZES)}")
+        return self
+
+
+@dataclass(frozen=True, config=SECTION)
+class ExpertParams:
+    p_gain: PositiveFloat = 10.0
+    d_gain: Float = 1.0
+    jitter: NonNegativeFloat = 0.2
+    waypoint_radius: PositiveFloat = 0.3
+
+
+@dataclass(frozen=True, config=SECTION)
+class CollectParams:
+    steps: PositiveInt = 200_000
+    seed: Seed = 0
+
+
+@dataclass(frozen=True, config=SECTION)
+class ModelParams:
+    dim: PositiveInt = 16
+    dim_mults: DimMults = field(default_factory=lambda: [1, 4, 8])
+    kernel_size: Annotated[PositiveInt, ODD] = 5
+
+
+@dataclass(frozen=True, config=SECTION)
+class DiffusionParams:
+    horizon: PositiveInt = 128
+    n_steps: PositiveInt = 64
+    predict_epsilon: Bool = False
+    clip_denoised: Bool = True
+    action_weight: PositiveFloat = 1.0
+    loss_discount: PositiveFloat = 1.0
+
+
+@dataclass(frozen=True, config=SECTION)
+class PretrainParams:
+    steps: PositiveInt = 8000
+    batch_size: PositiveInt = 32
+    grad_accum: PositiveInt = 1
+    lr: PositiveFloat = 2e-4
+    ema_decay: Annotated[Float, UNIT_OPEN] = 0.995
+    ema_every: PositiveInt = 10
+    ema_start: NonNegativeInt = 500
+    log_every: PositiveInt = 100
+    checkpoint_every: PositiveInt = 1000
+    seed: Seed = 0
+    expert_fraction: Annotated[Float, FRACTION] = 1.0
+
+
+@dataclass(frozen=True, config=SECTION)
+class PlannerParams:
+    sampler: Sampler = "ddim"
+    sampler_steps: PositiveInt = 16
+    replan_every: NonNegativeInt = 0
+    tracking_p_gain: PositiveFloat = 2.0
+    tracking_d_gain: NonNegativeFloat = 0.5
+
+
+@dataclass(frozen=True, config=SECTION)
+class EvaluateParams:
+    episodes: PositiveInt = 50
+    seed: Seed = 1000
+    batch_size: PositiveInt = 50
+    pictures: NonNegativeInt = 4
+
+
+@dataclass(frozen=True, config=SECTION)
+class GoldCoinParams:
+    cases_per_kind: PositiveInt = 10
+    seed: Seed = 2000
+    radius: PositiveFloat = 0.5
+    batch_size: PositiveInt = 50
+    pictures: NonNegativeInt = 3
+
+
+@dataclass(frozen=True, config=SECTION)
+class GenerateParams:
+    tasks: PositiveInt = 1024
+    batch_size: PositiveInt = 128
+    seed: Seed = 100
+    sampler: Sampler = "ddim"
+    sampler_steps: PositiveInt = 16  # and <= diffusion.n_steps (checked on Params)
+    cell_spread: Annotated[Float, HALF_CELL] = 0.4
+    coin_fraction: Annotated[Float, UNIT] = 0.0
+
+
+@dataclass(frozen=True, config=SECTION)
+class DiscriminateParams:
+    tracking: Bool = True
+    max_error: PositiveFloat = 1.0
+    rule: Annotated[Str, one_of(*SELECTION_RULES)] = "paper"
+    quantile: Annotated[Float, UNIT] = 0.5
+    top_k: PositiveInt = 64
+
+
+@dataclass(frozen=True, config=SECTION)
+class FinetuneParams:
+    steps_fraction: PositiveFloat = 0.25
+    expert_weight: Annotated[Float, UNIT_OPEN] = 0.5
+    seed: Seed = 1
+
+
+@dataclass(frozen=True, config=SECTION)
+class EvolutionParams:
+    """The defaults of every evolution phase; ``phases.<name>`` entries override any of these keys."""
+
+    generate: GenerateParams = field(default_factory=GenerateParams)
+    discriminate: DiscriminateParams = field(default_factory=DiscriminateParams)
+    finetune: FinetuneParams = field(default_factory=FinetuneParams)

@@ -1,0 +1,1 @@
+"""Benchmark families: one folder each behind the interfaces of ``base``, registered in ``registry``."""

@@ -1,0 +1,420 @@
+"""D4RL's locomotion dataset recipe, regenerated: train a behaviour policy with stable-baselines3, stop it at a
+"medium" score (about a third of expert), and record datasets from it.
+
+* ``medium``: ``dataset_steps`` steps of the medium policy, its deterministic action plus Gaussian noise
+  (``rollout_noise`` times the action half-range, clipped), in episodes of at most ``episode_steps`` steps.
+* ``medium-replay``: every transition the learner saw up to the medium point, in its episodes as they happened.
+* ``medium-expert``: the ``medium`` rollouts followed by as many rollouts of a policy trained on to ``expert_score``.
+
+Every row records the full simulator state (qpos, qvel) before the step. Everything is seeded from
+:class:`BehaviourSettings`: the same settings give the same dataset.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import gymnasium as gym
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+from tqdm.auto import tqdm
+
+from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.families.locomotion.reference import normalized_score
+from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator, env_id_of, parse_task_name
+from adaptdiffuser.io import atomic_path, write_json
+
+Algorithm = Literal["sac", "td3", "ppo"]
+Policy = Callable[[np.ndarray], np.ndarray]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+#: the evaluation curve and the policies' summary, beside the ``.zip`` files
+SUMMARY_FILE = "behaviour.json"
+
+
+class BehaviourSettings(BaseModel):
+    """Every knob of behaviour training and dataset recording."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    #: stable-baselines3 algorithm; SAC reached the medium target fastest in wall-clock on 2 CPU cores (README)
+    algorithm: Algorithm = "sac"
+    seed: int = Field(0, ge=0)
+    #: normalized score at which training stops and the ``medium`` policy is saved
+    medium_score: FiniteFloat = 33.0
+    #: normalized score the ``expert`` policy (``medium-expert`` only) trains on to
+    expert_score: FiniteFloat = 90.0
+    #: environment steps budget to reach ``medium_score`` (the policy there is saved, reached or not)
+    max_train_steps: int = Field(300_000, gt=0)
+    #: total environment steps budget to reach ``expert_score``
+    max_expert_steps: int = Field(1_000_000, gt=0)
+    #: uniformly random steps before the off-policy learners start (SAC, TD3)
+    learning_starts: int = Field(5_000, ge=0)
+    #: environment steps between evaluations
+    eval_every: int = Field(5_000, gt=0)
+    eval_episodes: int = Field(5, gt=0)
+    eval_seed: int = Field(1_000_000, ge=0)
+    #: steps of each recorded dataset part (D4RL: 1M for medium; medium-expert has 2 parts)
+    dataset_steps: int = Field(1_000_000, gt=0)
+    #: Gaussian action noise of the recorded rollouts, as a fraction of the action half-range
+    rollout_noise: FiniteFloat = Field(0.1, ge=0.0)
+    episode_steps: int = Field(1_000, gt=0)
+    #: torch intra-op threads while training and recording
+    torch_threads: int = Field(2, gt=0)
+    #: hidden layer sizes of the actor and critic networks
+    net_arch: list[Annotated[int, Field(gt=0)]] = Field(default_factory=lambda: [256, 256], min_length=1)
+    learning_rate: FiniteFloat = Field(3e-4, gt=0.0)
+    batch_size: int = Field(256, gt=0)
+
+    @model_validator(mode="after")
+    def _check_targets(self) -> BehaviourSettings:
+        if self.expert_score < self.medium_score:
+            raise ValueError(f"expert_score ({self.expert_score}) must be >= medium_score ({self.medium_score})")
+        if self.max_expert_steps < self.max_train_steps:
+            raise ValueError(
+                f"max_expert_steps ({self.max_expert_steps}) must be >= max_train_steps ({self.max_train_steps})"
+            )
+        return self
+
+
+# -- evaluation -----------------------------------------------------------------------------------------------
+
+
+def sb3_policy(model: Any, deterministic: bool = True) -> Policy:
+    """An SB3 model as an ``observation -> action`` function."""
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        action, _ = model.predict(obs, deterministic=deterministic)
+        return np.asarray(action, dtype=np.float64)
+
+    return act
+
+
+def random_policy(sim: LocomotionSimulator, seed: int) -> Policy:
+    """A uniformly random policy over ``sim``'s action space (the score reference's "random")."""
+    rng = np.random.default_rng(seed)
+    return lambda obs: rng.uniform(sim.action_low, sim.action_high)
+
+
+def evaluate_policy_returns(
+    policy: Policy | Any, task: str | LocomotionSimulator, episodes: int, seed: int, episode_steps: int | None = None
+) -> np.ndarray:
+    """Undiscounted returns of ``policy`` (a function or an SB3 model, deterministic) over ``episodes`` episodes;
+    episode ``i`` starts from ``np.random.default_rng([seed, i])``, so the same seed gives the same starts."""
+    sim = task if isinstance(task, LocomotionSimulator) else LocomotionSimulator(env_id_of(task))
+    act = sb3_policy(policy) if hasattr(policy, "predict") else policy
+    horizon = episode_steps or sim.episode_steps
+    returns = np.zeros(episodes)
+    for i in range(episodes):
+        obs = sim.reset(np.random.default_rng([seed, i]))
+        for _ in range(horizon):
+            out = sim.step(act(obs))
+            returns[i] += out.reward
+            obs = out.observation
+            if out.terminated:
+                break
+    return returns
+
+
+# -- recording ------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Recorder:
+    """Rows of steps as they happen: observation, action, reward, terminal, timeout and state before the step."""
+
+    observation: list[np.ndarray] = field(default_factory=list)
+    action: list[np.ndarray] = field(default_factory=list)
+    reward: list[float] = field(default_factory=list)
+    terminal: list[bool] = field(default_factory=list)
+    timeout: list[bool] = field(default_factory=list)
+    state: list[np.ndarray] = field(default_factory=list)
+    episode: list[int] = field(default_factory=list)
+
+    def add(self, episode: int, obs: np.ndarray, state: np.ndarray, action: np.ndarray, reward: float,
+            terminal: bool, timeout: bool) -> None:  # fmt: skip
+        self.episode.append(episode)
+        self.observation.append(obs)
+        self.state.append(state)
+        self.action.append(action)
+        self.reward.append(reward)
+        self.terminal.append(terminal)
+        self.timeout.append(timeout)
+
+    def __len__(self) -> int:
+        return len(self.episode)
+
+    def columns(self, rows: int | None = None) -> dict[str, np.ndarray]:
+        """The first ``rows`` rows as arrays; an episode cut by the end of the rows ends with a timeout."""
+        n = len(self) if rows is None else rows
+        cols = {
+            "episode": np.asarray(self.episode[:n], dtype=np.int64),
+            "observation": np.asarray(self.observation[:n], dtype=np.float64).reshape(n, -1),
+            "action": np.asarray(self.action[:n], dtype=np.float64).reshape(n, -1),
+            "reward": np.asarray(self.reward[:n], dtype=np.float64),
+            "terminal": np.asarray(self.terminal[:n], dtype=bool),
+            "timeout": np.asarray(self.timeout[:n], dtype=bool),
+            "state": np.asarray(self.state[:n], dtype=np.float64).reshape(n, -1),
+        }
+        if n and not (cols["terminal"][-1] or cols["timeout"][-1]):
+            cols["timeout"][-1] = True
+        return cols
+
+
+class _SimEnv(gym.Env):
+    """A gymnasium env over a :class:`LocomotionSimulator` with our episode limit, recording every step."""
+
+    def __init__(self, sim: LocomotionSimulator, recorder: _Recorder | None = None) -> None:
+        self.sim = sim
+        self.recorder = recorder
+        self.observation_space = sim.env.observation_space
+        self.action_space = sim.env.action_space
+        self._obs = np.zeros(sim.obs_dim)
+        self._t = 0
+        self._episode = -1
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        self._obs = self.sim.reset(self.np_random)
+        self._t = 0
+        self._episode += 1
+        return self._obs, {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        state = self.sim.get_state()
+        action = self.sim.clip_action(action)
+        out = self.sim.step(action)
+        self._t += 1
+        truncated = self._t >= self.sim.episode_steps and not out.terminated
+        if self.recorder is not None:
+            self.recorder.add(self._episode, self._obs, state, action, out.reward, out.terminated, truncated)
+        self._obs = out.observation
+        return out.observation, out.reward, out.terminated, truncated, {}
+
+
+def record_rollouts(
+    sim: LocomotionSimulator,
+    policy: Policy,
+    steps: int,
+    rng: np.random.Generator,
+    noise: float = 0.0,
+    progress: bool = False,
+    desc: str = "rollouts",
+) -> dict[str, np.ndarray]:
+    """``steps`` steps of ``policy`` plus Gaussian action noise (``noise`` times the action half-range), in
+    episodes ending on termination or after ``sim.episode_steps`` steps; the last one is cut at ``steps``."""
+    recorder = _Recorder()
+    half_range = (sim.action_high - sim.action_low) / 2
+    episode, t, obs = 0, 0, sim.reset(rng)
+    for _ in tqdm(range(steps), desc=desc, disable=not progress, mininterval=1.0):
+        state = sim.get_state()
+        action = np.asarray(policy(obs), dtype=np.float64)
+        if noise > 0:
+            action = action + noise * half_range * rng.standard_normal(sim.act_dim)
+        action = sim.clip_action(action)
+        out = sim.step(action)
+        t += 1
+        truncated = t >= sim.episode_steps and not out.terminated
+        recorder.add(episode, obs, state, action, out.reward, out.terminated, truncated)
+        obs = out.observation
+        if out.terminated or truncated:
+            episode, t, obs = episode + 1, 0, sim.reset(rng)
+    return recorder.columns()
+
+
+# -- training -------------------------------------------------------------------------------------------------
+
+
+@contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def _algorithm_class(name: str) -> type:
+    from stable_baselines3 import PPO, SAC, TD3
+
+    return {"sac": SAC, "td3": TD3, "ppo": PPO}[name]
+
+
+def make_learner(env: gym.Env, settings: BehaviourSettings) -> Any:
+    """A fresh SB3 learner on ``env`` with the settings' algorithm, networks and seed (CPU)."""
+    cls = _algorithm_class(settings.algorithm)
+    common = {"seed": settings.seed, "device": "cpu", "verbose": 0, "learning_rate": settings.learning_rate}
+    if settings.algorithm == "ppo":
+        arch = {"pi": list(settings.net_arch), "vf": list(settings.net_arch)}
+        return cls("MlpPolicy", env, batch_size=min(settings.batch_size, 2048), policy_kwargs={"net_arch": arch},
+                   **common)  # fmt: skip
+    kwargs: dict[str, Any] = {
+        "buffer_size": settings.max_expert_steps,
+        "learning_starts": settings.learning_starts,
+        "batch_size": settings.batch_size,
+        "policy_kwargs": {"net_arch": list(settings.net_arch)},
+    }
+    if settings.algorithm == "td3":
+        from stable_baselines3.common.noise import NormalActionNoise
+
+        act_dim = env.action_space.shape[0]
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(act_dim), 0.1 * np.ones(act_dim))
+    return cls("MlpPolicy", env, **kwargs, **common)
+
+
+@dataclass
+class TrainingResult:
+    """What :func:`train_behaviour` did: the learner at the end, the evaluation curve and the saved policies."""
+
+    learner: Any
+    curve: list[dict[str, float]]
+    replay: dict[str, np.ndarray]
+    medium: dict[str, Any]
+    expert: dict[str, Any] | None = None
+    medium_policy: Any = None
+    expert_policy: Any = None
+
+
+def train_behaviour(
+    env_id: str, out_dir: Path, settings: BehaviourSettings, expert: bool = False, progress: bool = False
+) -> TrainingResult:
+    """Train until the medium score (or the step budget), save ``medium.zip``; with ``expert``, go on to the expert
+    score (or its budget) and save ``expert.zip``. ``behaviour.json`` in ``out_dir`` holds the evaluation curve."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    out_dir = Path(out_dir)
+    cls = _algorithm_class(settings.algorithm)
+    recorder = _Recorder()
+    sim = LocomotionSimulator(env_id, episode_steps=settings.episode_steps)
+    eval_sim = LocomotionSimulator(env_id, episode_steps=settings.episode_steps)
+    curve: list[dict[str, float]] = []
+    summary: dict[str, Any] = {"env_id": env_id, "settings": settings.model_dump(), "curve": curve}
+    budget = settings.max_expert_steps if expert else settings.max_train_steps
+    bar = tqdm(total=budget, desc=f"{settings.algorithm} {env_id}", disable=not progress, unit="step")
+
+    class _Bar(BaseCallback):
+        def _on_step(self) -> bool:
+            bar.update(self.model.num_timesteps - bar.n)
+            return True
+
+    def save(learner: Any, name: str) -> Any:
+        with atomic_path(out_dir / f"{name}.zip") as tmp:
+            learner.save(tmp)
+        return cls.load(out_dir / f"{name}.zip", device="cpu")
+
+    def phase(learner: Any, target: float, limit: int, name: str, start: float) -> tuple[dict[str, Any], Any]:
+        best = -math.inf
+        while learner.num_timesteps < limit:
+            learner.learn(min(settings.eval_every, limit - learner.num_timesteps), reset_num_timesteps=False,
+                          callback=_Bar())  # fmt: skip
+            returns = evaluate_policy_returns(learner, eval_sim, settings.eval_episodes, settings.eval_seed)
+            score = float(normalized_score(returns.mean(), env_id))
+            best = max(best, score)
+            curve.append({"steps": int(learner.num_timesteps), "mean_return": float(returns.mean()),
+                          "normalized_score": score, "wall_s": time.perf_counter() - start})  # fmt: skip
+            bar.set_postfix(score=f"{score:.1f}")
+            write_json(out_dir / SUMMARY_FILE, summary)
+            if score >= target:
+                break
+        last = curve[-1] if curve else {"steps": 0, "mean_return": math.nan, "normalized_score": math.nan}
+        info = {"file": f"{name}.zip", "target": target, "reached": bool(last["normalized_score"] >= target),
+                "steps": last["steps"], "mean_return": last["mean_return"],
+                "normalized_score": last["normalized_score"], "best_score": best,
+                "wall_s": time.perf_counter() - start}  # fmt: skip
+        return info, save(learner, name)
+
+    with _torch_threads(settings.torch_threads):
+        train_env = _SimEnv(sim, recorder)
+        learner = make_learner(train_env, settings)
+        start = time.perf_counter()
+        medium, medium_policy = phase(learner, settings.medium_score, settings.max_train_steps, "medium", start)
+        summary["medium"] = medium
+        replay = recorder.columns(len(recorder))
+        result = TrainingResult(learner, curve, replay, medium, medium_policy=medium_policy)
+        if expert:
+            train_env.recorder = None  # the replay after the medium point is not kept
+            result.expert, result.expert_policy = phase(
+                learner, settings.expert_score, settings.max_expert_steps, "expert", start
+            )
+            summary["expert"] = result.expert
+        summary["train_steps_per_s"] = learner.num_timesteps / max(time.perf_counter() - start, 1e-9)
+    bar.close()
+    write_json(out_dir / SUMMARY_FILE, summary)
+    return result
+
+
+# -- datasets -------------------------------------------------------------------------------------------------
+
+
+def to_trajectories(parts: list[dict[str, np.ndarray]], task_name: str, sim: LocomotionSimulator,
+                    generator: dict[str, Any]) -> Trajectories:  # fmt: skip
+    """Recorded parts, one after the other, as :class:`Trajectories` with consecutive episode ids from 0."""
+    episode_ids, offset = [], 0
+    for part in parts:
+        _, ids = np.unique(part["episode"], return_inverse=True)
+        episode_ids.append(ids + offset)
+        offset += int(ids.max()) + 1 if len(ids) else 0
+    episode_id = np.concatenate(episode_ids).astype(np.int64)
+    step = np.zeros(len(episode_id), dtype=np.int32)
+    if len(episode_id):
+        starts = np.flatnonzero(np.r_[True, np.diff(episode_id) != 0])
+        counts = np.diff(np.r_[starts, len(episode_id)])
+        step = (np.arange(len(episode_id)) - np.repeat(starts, counts)).astype(np.int32)
+    cat = {key: np.concatenate([p[key] for p in parts]) for key in ("observation", "action", "reward", "terminal",
+                                                                      "timeout", "state")}  # fmt: skip
+    return Trajectories(
+        episode_id=episode_id,
+        step=step,
+        observation=cat["observation"].astype(np.float32),
+        action=cat["action"].astype(np.float32),
+        reward=cat["reward"].astype(np.float32),
+        terminal=cat["terminal"],
+        timeout=cat["timeout"],
+        metadata=make_metadata(task_name, sim.obs_dim, sim.act_dim, "expert", generator, state_dim=sim.state_dim),
+        sim_state=cat["state"],
+    )
+
+
+def collect_locomotion_dataset(
+    task_name: str, out_dir: Path, settings: BehaviourSettings, progress: bool = False
+) -> Trajectories:
+    """Train the behaviour policies of ``task_name`` (saved in ``out_dir``) and record its D4RL-style dataset."""
+    env_id, kind = parse_task_name(task_name)
+    sim = LocomotionSimulator(env_id, episode_steps=settings.episode_steps)
+    result = train_behaviour(env_id, out_dir, settings, expert=kind == "medium-expert", progress=progress)
+    generator: dict[str, Any] = {
+        "recipe": "d4rl-regenerated",
+        "env_id": env_id,
+        "dataset": kind,
+        "settings": settings.model_dump(),
+        "medium": result.medium,
+        "expert": result.expert,
+    }
+    if kind == "medium-replay":
+        parts = [result.replay]
+    else:
+        with _torch_threads(settings.torch_threads):
+            rng = np.random.default_rng([settings.seed, 1])
+            parts = [record_rollouts(sim, sb3_policy(result.medium_policy), settings.dataset_steps, rng,
+                                     settings.rollout_noise, progress, "medium rollouts")]  # fmt: skip
+            if kind == "medium-expert":
+                rng = np.random.default_rng([settings.seed, 2])
+                parts.append(record_rollouts(sim, sb3_policy(result.expert_policy), settings.dataset_steps, rng,
+                                             settings.rollout_noise, progress, "expert rollouts"))  # fmt: skip
+    return to_trajectories(parts, task_name, sim, generator)
+
+
+def load_behaviour_policy(out_dir: Path, which: Literal["medium", "expert"] = "medium") -> Any:
+    """A saved behaviour policy (SB3 model) from ``out_dir``, its algorithm read from ``behaviour.json``."""
+    summary = json.loads((Path(out_dir) / SUMMARY_FILE).read_text())
+    return _algorithm_class(summary["settings"]["algorithm"]).load(Path(out_dir) / f"{which}.zip", device="cpu")

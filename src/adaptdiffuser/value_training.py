@@ -1,0 +1,124 @@
+"""Training the value network of Diffuser's locomotion guidance, and its checkpoint folder.
+
+The value network learns ``V(x_t, t)``: the return-to-go of a window's first step, from the window noised to a
+uniformly drawn diffusion step ``t`` with the diffusion model's own forward process (``q_sample``) and with its
+first state inpainted, exactly as the sampler presents noisy plans during guided planning.
+
+A value checkpoint folder holds ``value.pt`` (weights) and ``config.json`` (the network's constructor arguments
+under ``"network"``, the settings and any extra info). It has no normalizer: the diffusion bundle's is used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from tqdm import tqdm
+
+from adaptdiffuser.data.returns import ValueWindowDataset
+from adaptdiffuser.diffusion.conditions import apply_inpainting
+from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
+from adaptdiffuser.io import atomic_dir, read_json, write_json
+from adaptdiffuser.models.value import ValueNetwork
+
+LogFn = Callable[[int, float], None]
+VALUE_FILES = ("value.pt", "config.json")
+
+
+class ValueSettings(BaseModel):
+    """Value training settings (defaults: Diffuser's locomotion value config)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    steps: int = Field(200_000, gt=0)
+    batch_size: int = Field(32, gt=0)
+    lr: float = Field(2e-4, gt=0)
+    seed: int = Field(0, ge=0)
+    discount: float = Field(0.997, gt=0, le=1)
+    terminal_penalty: float = -100.0
+    log_every: int = Field(1000, gt=0)
+
+
+def value_loss(
+    value_net: torch.nn.Module,
+    diffusion: GaussianDiffusion,
+    x0: torch.Tensor,
+    target: torch.Tensor,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Mean squared error of the value of noisy, first-state-inpainted windows ``x0`` against ``target``."""
+    t = torch.randint(0, diffusion.n_steps, (x0.shape[0],), device=x0.device, generator=generator)
+    noise = torch.randn(x0.shape, device=x0.device, generator=generator)
+    act_dim = diffusion.act_dim
+    xt = apply_inpainting(diffusion.q_sample(x0, t, noise), {0: x0[:, 0, act_dim:]}, act_dim)
+    return ((value_net(xt, t) - target) ** 2).mean()
+
+
+def train_value(
+    value_net: torch.nn.Module,
+    diffusion: GaussianDiffusion,
+    dataset: ValueWindowDataset,
+    settings: ValueSettings,
+    device: torch.device,
+    progress: bool = True,
+    on_log: LogFn | None = None,
+) -> list[tuple[int, float]]:
+    """Train ``value_net`` in place (Adam) for ``settings.steps`` steps; return the logged ``(step, mean loss)``.
+
+    ``diffusion`` supplies only the noise schedule (it is moved to ``device``, not trained). Seeded by
+    ``settings.seed`` (window draws, steps and noise); the network's initial weights are the caller's.
+    """
+    value_net.to(device).train()
+    diffusion.to(device)
+    optimizer = torch.optim.Adam(value_net.parameters(), lr=settings.lr)
+    rng = np.random.default_rng(settings.seed)
+    gen = torch.Generator(device=device).manual_seed(settings.seed)
+    history: list[tuple[int, float]] = []
+    running: list[float] = []
+    bar = tqdm(range(settings.steps), desc="value", disable=not progress, mininterval=2.0)
+    for step in bar:
+        windows, values = dataset.sample(settings.batch_size, rng)
+        x0 = torch.from_numpy(windows).to(device)
+        target = torch.from_numpy(values).to(device)
+        loss = value_loss(value_net, diffusion, x0, target, generator=gen)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        running.append(loss.item())
+        done = step + 1
+        if done % settings.log_every == 0 or done == settings.steps:
+            mean_loss = float(np.mean(running))
+            running = []
+            history.append((done, mean_loss))
+            bar.set_postfix(loss=f"{mean_loss:.4f}")
+            if on_log:
+                on_log(done, mean_loss)
+    value_net.eval()
+    return history
+
+
+def save_value(path: str | Path, value_net: ValueNetwork, info: dict[str, Any] | None = None) -> None:
+    """Write a value checkpoint folder (``value.pt``, ``config.json``) atomically; ``info`` goes into the config
+    (e.g. ``{"settings": settings.model_dump()}``)."""
+    with atomic_dir(path) as tmp:
+        torch.save(value_net.state_dict(), tmp / "value.pt")
+        write_json(tmp / "config.json", {"network": value_net.config(), **(info or {})})
+
+
+def load_value(path: str | Path, device: str | torch.device = "cpu") -> tuple[ValueNetwork, dict[str, Any]]:
+    """Load a value checkpoint folder: the network (in eval mode, on ``device``) and its config; raise
+    ``FileNotFoundError`` naming the missing folder or file."""
+    path = Path(path)
+    if not path.is_dir():
+        raise FileNotFoundError(f"value checkpoint folder not found: {path} (run the stage that trains it)")
+    for name in VALUE_FILES:
+        if not (path / name).exists():
+            raise FileNotFoundError(f"value checkpoint {path} is incomplete: no {name} (run the stage that trains it)")
+    config = read_json(path / "config.json", "value config")
+    net = ValueNetwork(**config["network"])
+    net.load_state_dict(torch.load(path / "value.pt", map_location="cpu", weights_only=True))
+    return net.to(device).eval(), config

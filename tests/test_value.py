@@ -1,0 +1,169 @@
+"""Value guidance's pieces: the value network, returns-to-go targets, value training and its checkpoint folder."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from pydantic import ValidationError
+
+from adaptdiffuser.data.normalizer import GaussianNormalizer
+from adaptdiffuser.data.returns import ValueWindowDataset, returns_to_go
+from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.data.windows import joint_array
+from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
+from adaptdiffuser.models.unet import TemporalUnet
+from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.value_training import ValueSettings, load_value, save_value, train_value, value_loss
+
+CPU = torch.device("cpu")
+OBS, ACT = 3, 2
+
+
+def make_traj(rewards: list[list[float]], terminal_last: list[bool], seed: int = 0) -> Trajectories:
+    """Episodes with the given rewards; an episode ends in a terminal step or a time-out."""
+    rng = np.random.default_rng(seed)
+    lengths = [len(r) for r in rewards]
+    n = sum(lengths)
+    terminal = np.zeros(n, dtype=bool)
+    timeout = np.zeros(n, dtype=bool)
+    ends = np.cumsum(lengths) - 1
+    terminal[ends[np.array(terminal_last)]] = True
+    timeout[ends[~np.array(terminal_last)]] = True
+    return Trajectories(
+        episode_id=np.repeat(np.arange(len(lengths)), lengths),
+        step=np.concatenate([np.arange(k) for k in lengths]).astype(np.int32),
+        observation=rng.normal(size=(n, OBS)).astype(np.float32),
+        action=rng.normal(size=(n, ACT)).astype(np.float32),
+        reward=np.concatenate(rewards).astype(np.float32),
+        terminal=terminal,
+        timeout=timeout,
+        metadata=make_metadata("test", OBS, ACT, "expert", {}),
+    )
+
+
+def test_value_network_shape_gradients_and_horizon_check() -> None:
+    torch.manual_seed(0)
+    net = ValueNetwork(OBS + ACT, horizon=12, dim=8, dim_mults=(1, 2, 4, 8))
+    x = torch.randn(4, 12, OBS + ACT, requires_grad=True)
+    out = net(x, torch.tensor([0, 1, 5, 9]))
+    assert out.shape == (4,) and torch.isfinite(out).all()
+    out.sum().backward()
+    assert x.grad is not None and x.grad.abs().sum() > 0
+    assert all(p.grad is not None and torch.isfinite(p.grad).all() for p in net.parameters())
+    assert sum(p.grad.abs().sum().item() for p in net.parameters()) > 0
+    # the step matters, and each trajectory's value depends only on its own trajectory
+    assert not torch.allclose(net(x[:1], torch.tensor([0])), net(x[:1], torch.tensor([7])))
+    torch.testing.assert_close(net(x[1:2], torch.tensor([1])), out[1:2].detach())
+    with pytest.raises(ValueError, match="12"):
+        net(torch.randn(2, 16, OBS + ACT), torch.zeros(2, dtype=torch.long))
+
+
+def test_returns_to_go_by_hand() -> None:
+    # episode 0 ends in a terminal step, episode 1 in a time-out, episode 2 is a lone terminal step
+    traj = make_traj([[1.0, 2.0, 3.0], [1.0, 1.0], [4.0]], [True, False, True])
+    g = returns_to_go(traj, discount=0.5, terminal_penalty=-10.0)
+    # episode 0: rewards [1, 2, 3 - 10]: G2 = -7, G1 = 2 - 3.5 = -1.5, G0 = 1 - 0.75 = 0.25
+    # episode 1: no penalty, no bootstrap into episode 2: G1 = 1, G0 = 1.5; episode 2: 4 - 10
+    np.testing.assert_allclose(g, [0.25, -1.5, -7.0, 1.5, 1.0, -6.0])
+    np.testing.assert_allclose(returns_to_go(traj, 1.0, 0.0), [6.0, 5.0, 3.0, 2.0, 1.0, 4.0])
+    with pytest.raises(ValueError, match="discount"):
+        returns_to_go(traj, discount=0.0)
+
+
+def test_value_window_dataset_pads_with_the_last_step_and_pairs_first_step_returns() -> None:
+    traj = make_traj([[1.0, 2.0, 3.0], [1.0, 1.0, 1.0, 1.0, 1.0, 1.0]], [True, False])
+    normalizer = GaussianNormalizer.fit(joint_array(traj))
+    normed = normalizer.normalize(joint_array(traj).astype(np.float64)).astype(np.float32)
+    g = returns_to_go(traj, 0.9, -100.0).astype(np.float32)
+    ds = ValueWindowDataset(traj, horizon=4, normalizer=normalizer, discount=0.9, terminal_penalty=-100.0)
+    assert len(ds) == 9  # every step starts a window, the short episode included
+    windows, values = ds.sample(200, np.random.default_rng(0))
+    assert windows.shape == (200, 4, OBS + ACT) and windows.dtype == np.float32
+    assert values.shape == (200,) and values.dtype == np.float32
+    seen = set()
+    for w, v in zip(windows, values, strict=True):
+        start = int(np.flatnonzero((normed == w[0]).all(axis=1))[0])
+        seen.add(start)
+        last = 2 if start < 3 else 8
+        rows = np.minimum(start + np.arange(4), last)
+        np.testing.assert_array_equal(w, normed[rows])  # never crosses into the next episode
+        assert v == g[start]
+    assert seen == set(range(9))
+    # without padding only windows fully inside an episode: starts 3, 4, 5 of the long one
+    assert len(ValueWindowDataset(traj, 4, normalizer, pad=False)) == 3
+    with pytest.raises(ValueError, match="horizon"):
+        ValueWindowDataset(traj, 7, normalizer, pad=False)
+
+
+def tiny_diffusion(horizon: int, n_steps: int = 10) -> GaussianDiffusion:
+    torch.manual_seed(0)
+    net = TemporalUnet(OBS + ACT, dim=8, dim_mults=(1, 2))
+    return GaussianDiffusion(net, horizon=horizon, obs_dim=OBS, act_dim=ACT, n_steps=n_steps)
+
+
+def test_training_learns_a_value_of_the_first_state() -> None:
+    """One-step episodes whose reward is a known function of the state: the value of a window is that function
+    of its (inpainted, hence always visible) first state, at every noise level."""
+    rng = np.random.default_rng(0)
+    n = 512
+    obs = rng.uniform(-1, 1, size=(n, OBS)).astype(np.float32)
+    traj = make_traj([[0.0]] * n, [False] * n)
+    traj.observation = obs
+    traj.reward = (2.0 * obs[:, 0] - obs[:, 1]).astype(np.float32)
+    normalizer = GaussianNormalizer.fit(joint_array(traj))
+    horizon = 8
+    ds = ValueWindowDataset(traj, horizon, normalizer, discount=0.99, terminal_penalty=0.0)
+    diffusion = tiny_diffusion(horizon)
+    torch.manual_seed(0)
+    net = ValueNetwork(OBS + ACT, horizon, dim=16, dim_mults=(1, 2))
+    windows, values = ds.sample(256, np.random.default_rng(1))
+    x0, target = torch.from_numpy(windows), torch.from_numpy(values)
+
+    def eval_loss() -> float:
+        with torch.no_grad():
+            return value_loss(net, diffusion, x0, target, generator=torch.Generator().manual_seed(5)).item()
+
+    before = eval_loss()
+    logged = []
+    settings = ValueSettings(steps=300, batch_size=32, lr=1e-3, seed=0, log_every=50)
+    history = train_value(net, diffusion, ds, settings, CPU, progress=False, on_log=lambda s, v: logged.append(s))
+    after = eval_loss()
+    assert [s for s, _ in history] == logged == list(range(50, settings.steps + 1, 50))
+    assert after < before / 10, (before, after)
+    assert not net.training
+    # seeded: the same settings from the same initial weights give the same history
+    torch.manual_seed(0)
+    again = ValueNetwork(OBS + ACT, horizon, dim=16, dim_mults=(1, 2))
+    assert train_value(again, diffusion, ds, settings, CPU, progress=False) == history
+
+
+def test_value_settings_validation() -> None:
+    assert ValueSettings().discount == 0.997 and ValueSettings().terminal_penalty == -100.0
+    with pytest.raises(ValidationError, match="bogus"):
+        ValueSettings(bogus=1)
+    with pytest.raises(ValidationError, match="lr"):
+        ValueSettings(lr=float("inf"))
+    with pytest.raises(ValidationError, match="terminal_penalty"):
+        ValueSettings(terminal_penalty=float("nan"))
+    with pytest.raises(ValidationError, match="seed"):
+        ValueSettings(seed=-1)
+    with pytest.raises(ValidationError, match="discount"):
+        ValueSettings(discount=1.5)
+
+
+def test_value_checkpoint_round_trip_and_missing_files(tmp_path) -> None:
+    torch.manual_seed(0)
+    net = ValueNetwork(OBS + ACT, 8, dim=8, dim_mults=(1, 2)).eval()
+    folder = tmp_path / "value"
+    save_value(folder, net, {"settings": ValueSettings(steps=5).model_dump()})
+    loaded, config = load_value(folder)
+    assert config["settings"]["steps"] == 5 and config["network"]["horizon"] == 8
+    x, t = torch.randn(3, 8, OBS + ACT), torch.tensor([0, 2, 4])
+    torch.testing.assert_close(loaded(x, t), net(x, t), rtol=0, atol=0)
+    save_value(folder, net)  # overwriting a folder works
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        load_value(tmp_path / "nowhere")
+    (folder / "value.pt").unlink()
+    with pytest.raises(FileNotFoundError, match="value.pt"):
+        load_value(folder)

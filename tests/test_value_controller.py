@@ -1,0 +1,122 @@
+"""Locomotion-style planning pieces on a real simulator: episodes that end on termination, start-conditioned
+training, and the value-planning controller that executes the first action of the best of N guided plans."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from adaptdiffuser.checkpoint import make_bundle
+from adaptdiffuser.config import Params
+from adaptdiffuser.data.normalizer import GaussianNormalizer
+from adaptdiffuser.diffusion.conditions import training_conditions
+from adaptdiffuser.diffusion.guidance import ValueGuidance
+from adaptdiffuser.diffusion.samplers import DDIMSampler
+from adaptdiffuser.envs.factory import make_env
+from adaptdiffuser.evaluation import Controller, run_episodes
+from adaptdiffuser.families.base import Simulator, Step
+from adaptdiffuser.planning import Planner, ValuePlanningController
+
+CPU = torch.device("cpu")
+
+
+class FallsAfter(Simulator):
+    """A real U-Maze simulator whose episode terminates after a per-instance number of steps."""
+
+    def __init__(self, steps: int) -> None:
+        self.env = make_env(Params())
+        self.steps = steps
+        self.obs_dim, self.act_dim, self.state_dim = 4, 2, 4
+        self.episode_steps = 20
+        self.stepped = 0
+
+    def reset(self, rng):
+        self.stepped = 0
+        return self.env.reset(rng)
+
+    def step(self, action) -> Step:
+        self.stepped += 1
+        step = self.env.step(action)
+        return Step(step.observation, 1.0, self.stepped >= self.steps)
+
+    def get_state(self):
+        return self.env.get_state()
+
+    def set_state(self, state):
+        return self.env.set_state(state)
+
+
+class Zero(Controller):
+    def act(self, envs, obs, t):
+        return np.zeros((len(envs), 2))
+
+
+def test_terminated_episodes_stop_and_keep_their_length() -> None:
+    lengths = iter([3, 25, 7])  # the second runs into the 20-step limit first
+    made = []
+
+    def factory():
+        made.append(FallsAfter(next(lengths)))
+        return made[-1]
+
+    result = run_episodes(factory, Zero(), 3, seed=0, batch_size=3, progress=False)
+    assert result.lengths == [3, 20, 7]
+    assert result.terminated == [True, False, True]
+    assert result.returns == [3.0, 20.0, 7.0]  # reward 1 per step taken, none after termination
+    assert [env.stepped for env in made] == [3, 20, 7]  # a terminated simulator is never stepped again
+    assert [len(ex) for ex in result.executed] == [4, 21, 8]
+    assert result.goals == [None] * 3
+
+
+def test_start_conditioning_inpaints_only_the_first_state() -> None:
+    x0 = torch.randn(5, 8, 6)
+    start = training_conditions("start", x0, act_dim=2)
+    both = training_conditions("start_goal", x0, act_dim=2)
+    assert list(start) == [0] and sorted(both) == [0, 7]
+    torch.testing.assert_close(start[0], x0[:, 0, 2:])
+
+
+class PreferFirstAction(nn.Module):
+    """A stand-in value: the first action's first dimension, so higher means 'push right now'."""
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        return x[:, 0, 0]
+
+
+def _planner(tiny_model_params, tiny_diffusion_params) -> Planner:
+    torch.manual_seed(0)
+    normalizer = GaussianNormalizer(np.zeros(6), np.full(6, 2.0))
+    bundle = make_bundle(tiny_model_params, tiny_diffusion_params, 4, 2, normalizer, conditioning="start")
+    return Planner(bundle, DDIMSampler(4), CPU)
+
+
+def test_value_controller_executes_the_first_action_of_the_best_plan(tiny_model_params, tiny_diffusion_params) -> None:
+    planner = _planner(tiny_model_params, tiny_diffusion_params)
+    guidance = ValueGuidance(PreferFirstAction(), scale=0.0)
+    controller = ValuePlanningController(planner, guidance, n_samples=6, seed=11)
+    envs = [make_env(Params()) for _ in range(2)]
+    obs = np.stack([env.reset(np.random.default_rng(i)) for i, env in enumerate(envs)])
+    controller.begin(envs, obs, [0, 1])
+    actions = controller.act(envs, obs, 0)
+
+    # the same samples, drawn directly: per episode the chosen action is the one with the largest value
+    from adaptdiffuser.seeding import derive_seed
+
+    x = planner.sample(np.repeat(obs, 6, axis=0), None, derive_seed(11, 0, 0), guidance)
+    raw = planner.actions(x).reshape(2, 6, 2)
+    best = x[:, 0, 0].reshape(2, 6).argmax(dim=1).numpy()
+    np.testing.assert_allclose(actions, raw[np.arange(2), best])
+    assert not np.allclose(actions, raw[:, 0])  # not just the first sample
+    assert controller.first_plans.shape == (2, tiny_diffusion_params.horizon, 4)
+    np.testing.assert_allclose(controller.first_plans[:, 0], obs, atol=1e-5)  # plans start at the observation
+
+
+def test_value_guidance_raises_the_value_of_the_chosen_plans(tiny_model_params, tiny_diffusion_params) -> None:
+    planner = _planner(tiny_model_params, tiny_diffusion_params)
+    obs = np.zeros((8, 4))
+    plain = ValueGuidance(PreferFirstAction(), scale=0.0)
+    guided = ValueGuidance(PreferFirstAction(), scale=5.0, n_guide_steps=2, t_stopgrad=0)
+    v_plain = plain.values(planner.sample(obs, None, 3, plain))
+    v_guided = guided.values(planner.sample(obs, None, 3, guided))
+    assert v_guided.mean() > v_plain.mean() + 0.1
