@@ -44,7 +44,7 @@ class BehaviourSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    #: stable-baselines3 algorithm; SAC reached the medium target fastest in wall-clock on 2 CPU cores (README)
+    #: stable-baselines3 algorithm (sac, td3, ppo); measure with benchmarks/bench_behaviour.py (no figures yet)
     algorithm: Algorithm = "sac"
     seed: int = Field(0, ge=0)
     #: normalized score at which training stops and the ``medium`` policy is saved
