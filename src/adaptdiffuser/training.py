@@ -26,6 +26,29 @@ def fingerprint(*parts: Any) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+class LossLog:
+    """Mean training loss over each ``every`` steps (and at the last step): kept in ``history``, shown on the
+    progress bar and passed to ``on_log``."""
+
+    def __init__(self, every: int, last: int, bar: tqdm, on_log: LogFn | None, history: list | None = None) -> None:
+        self.every, self.last, self.bar, self.on_log = every, last, bar, on_log
+        self.history: list[tuple[int, float]] = history if history is not None else []
+        self.running: list[float] = []
+
+    def add(self, loss: float) -> None:
+        self.running.append(loss)
+
+    def step_done(self, done: int) -> None:
+        if done % self.every and done != self.last:
+            return
+        mean_loss = float(np.mean(self.running))
+        self.running = []
+        self.history.append((done, mean_loss))
+        self.bar.set_postfix(loss=f"{mean_loss:.4f}")
+        if self.on_log:
+            self.on_log(done, mean_loss)
+
+
 def _update_ema(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> None:
     with torch.no_grad():
         for e, m in zip(ema.parameters(), model.parameters(), strict=True):
@@ -73,14 +96,14 @@ def train(
     bar = tqdm(
         range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress, mininterval=2.0
     )
-    running = []
+    log = LossLog(cfg.log_every, cfg.steps, bar, on_log, history)
     for step in bar:
         for _ in range(cfg.grad_accum):
             x0 = torch.from_numpy(dataset.sample(cfg.batch_size, rng)).to(device)
             cond = training_conditions(conditioning, x0, act_dim)
             loss = model.loss(x0, cond, generator=gen) / cfg.grad_accum
             loss.backward()
-            running.append(loss.item() * cfg.grad_accum)
+            log.add(loss.item() * cfg.grad_accum)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         done = step + 1
@@ -89,13 +112,7 @@ def train(
                 _copy_weights(ema.model, model.model)
             else:
                 _update_ema(ema.model, model.model, cfg.ema_decay)
-        if done % cfg.log_every == 0 or done == cfg.steps:
-            mean_loss = float(np.mean(running))
-            running = []
-            history.append((done, mean_loss))
-            bar.set_postfix(loss=f"{mean_loss:.4f}")
-            if on_log:
-                on_log(done, mean_loss)
+        log.step_done(done)
         if resume_path is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps:
             state = {
                 "run_id": run_id,

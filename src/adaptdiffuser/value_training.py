@@ -10,7 +10,6 @@ under ``"network"``, the settings and any extra info). It has no normalizer: the
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +23,8 @@ from adaptdiffuser.diffusion.conditions import apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.io import atomic_dir, read_json, write_json
 from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.training import LogFn, LossLog
 
-LogFn = Callable[[int, float], None]
 VALUE_FILES = ("value.pt", "config.json")
 
 
@@ -77,9 +76,8 @@ def train_value(
     optimizer = torch.optim.Adam(value_net.parameters(), lr=settings.lr)
     rng = np.random.default_rng(settings.seed)
     gen = torch.Generator(device=device).manual_seed(settings.seed)
-    history: list[tuple[int, float]] = []
-    running: list[float] = []
     bar = tqdm(range(settings.steps), desc="value", disable=not progress, mininterval=2.0)
+    log = LossLog(settings.log_every, settings.steps, bar, on_log)
     for step in bar:
         windows, values = dataset.sample(settings.batch_size, rng)
         x0 = torch.from_numpy(windows).to(device)
@@ -88,17 +86,10 @@ def train_value(
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-        running.append(loss.item())
-        done = step + 1
-        if done % settings.log_every == 0 or done == settings.steps:
-            mean_loss = float(np.mean(running))
-            running = []
-            history.append((done, mean_loss))
-            bar.set_postfix(loss=f"{mean_loss:.4f}")
-            if on_log:
-                on_log(done, mean_loss)
+        log.add(loss.item())
+        log.step_done(step + 1)
     value_net.eval()
-    return history
+    return log.history
 
 
 def save_value(path: str | Path, value_net: ValueNetwork, info: dict[str, Any] | None = None) -> None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -87,7 +86,3 @@ class Family(ABC):
     def describe(self, task: Any) -> dict[str, Any]:
         """Facts about the task worth logging next to its runs (env id, dataset kind...)."""
         return {}
-
-    def data_dir(self, root: Path, task_name: str) -> Path:
-        """Where the task's dataset (and whatever made it, e.g. behaviour policies) lives."""
-        return root / "data" / task_name

@@ -48,6 +48,27 @@ class ResidualTemporalBlock(nn.Module):
         return self.second(out) + self.residual(x)
 
 
+def time_embedding(dim: int) -> nn.Sequential:
+    """The diffusion-step embedding MLP shared by the U-Net and the value network."""
+    return nn.Sequential(SinusoidalEmbedding(dim), nn.Linear(dim, dim * 4), nn.Mish(), nn.Linear(dim * 4, dim))
+
+
+def down_path(dims: list[int], embed_dim: int, kernel_size: int) -> nn.ModuleList:
+    """The U-Net's contracting path: per channel pair two residual blocks, then a stride-2 downsample (none after
+    the last pair)."""
+    pairs = list(zip(dims[:-1], dims[1:], strict=True))
+    return nn.ModuleList(
+        nn.ModuleList(
+            [
+                ResidualTemporalBlock(c_in, c_out, embed_dim, kernel_size),
+                ResidualTemporalBlock(c_out, c_out, embed_dim, kernel_size),
+                nn.Conv1d(c_out, c_out, 3, stride=2, padding=1) if i < len(pairs) - 1 else nn.Identity(),
+            ]
+        )
+        for i, (c_in, c_out) in enumerate(pairs)
+    )
+
+
 class TemporalUnet(nn.Module):
     """Diffuser's temporal U-Net: predicts a tensor of the input's shape from a noisy trajectory and step."""
 
@@ -58,21 +79,8 @@ class TemporalUnet(nn.Module):
         dims = [transition_dim, *(dim * m for m in dim_mults)]
         pairs = list(zip(dims[:-1], dims[1:], strict=True))
         self.downsample_factor = 2 ** (len(dim_mults) - 1)
-        self.time_mlp = nn.Sequential(
-            SinusoidalEmbedding(dim), nn.Linear(dim, dim * 4), nn.Mish(), nn.Linear(dim * 4, dim)
-        )
-        self.down = nn.ModuleList()
-        for i, (c_in, c_out) in enumerate(pairs):
-            last = i == len(pairs) - 1
-            self.down.append(
-                nn.ModuleList(
-                    [
-                        ResidualTemporalBlock(c_in, c_out, dim, kernel_size),
-                        ResidualTemporalBlock(c_out, c_out, dim, kernel_size),
-                        nn.Conv1d(c_out, c_out, 3, stride=2, padding=1) if not last else nn.Identity(),
-                    ]
-                )
-            )
+        self.time_mlp = time_embedding(dim)
+        self.down = down_path(dims, dim, kernel_size)
         mid = dims[-1]
         self.mid1 = ResidualTemporalBlock(mid, mid, dim, kernel_size)
         self.mid2 = ResidualTemporalBlock(mid, mid, dim, kernel_size)

@@ -7,7 +7,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from adaptdiffuser.models.unet import ResidualTemporalBlock, SinusoidalEmbedding
+from adaptdiffuser.models.unet import ResidualTemporalBlock, down_path, time_embedding
 
 
 def _halve(length: int) -> int:
@@ -46,24 +46,11 @@ class ValueNetwork(nn.Module):
         self.dim_mults = tuple(dim_mults)
         self.kernel_size = kernel_size
         dims = [transition_dim, *(dim * m for m in dim_mults)]
-        self.time_mlp = nn.Sequential(
-            SinusoidalEmbedding(dim), nn.Linear(dim, dim * 4), nn.Mish(), nn.Linear(dim * 4, dim)
-        )
+        self.time_mlp = time_embedding(dim)
+        self.down = down_path(dims, dim, kernel_size)
         length = horizon
-        self.down = nn.ModuleList()
-        for i, (c_in, c_out) in enumerate(zip(dims[:-1], dims[1:], strict=True)):
-            last = i == len(dims) - 2
-            self.down.append(
-                nn.ModuleList(
-                    [
-                        ResidualTemporalBlock(c_in, c_out, dim, kernel_size),
-                        ResidualTemporalBlock(c_out, c_out, dim, kernel_size),
-                        nn.Conv1d(c_out, c_out, 3, stride=2, padding=1) if not last else nn.Identity(),
-                    ]
-                )
-            )
-            if not last:
-                length = _halve(length)
+        for _ in range(len(dims) - 2):
+            length = _halve(length)
         mid, mid2, mid3 = dims[-1], _norm_channels(dims[-1] // 2), _norm_channels(dims[-1] // 4)
         self.mid1 = ResidualTemporalBlock(mid, mid2, dim, kernel_size)
         self.mid_down1 = nn.Conv1d(mid2, mid2, 3, stride=2, padding=1)
