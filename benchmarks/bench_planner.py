@@ -1,10 +1,10 @@
-"""Speed figures for the current params.yaml profile, printed (never asserted).
+"""Speed figures of a Maze2D task of the current params.yaml profile, printed (never asserted).
 
 Prints: training steps per second, plan latency per decision (batch 1) for the full DDPM chain and the strided
 DDIM sampler, evaluation episodes per second (batched planning + simulation), and the profile's score as
 recorded by the last `dvc repro` in metrics/summary.json.
 
-    python benchmarks/bench_planner.py [--params params.yaml] [--device cpu] [--repeats 10]
+    python benchmarks/bench_planner.py [--params params.yaml] [--task maze2d-umaze] [--device cpu] [--repeats 10]
 """
 
 from __future__ import annotations
@@ -22,27 +22,34 @@ from adaptdiffuser.config import load_params
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
-from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evaluation import run_episodes
+from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.planning import Planner, PlannerController
-from adaptdiffuser.stages.common import resolve_device
+from adaptdiffuser.stages.common import model_dir, resolve_device
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--task", default=None, help="a maze2d task of params (default: the evolved task)")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--train-steps", type=int, default=30)
     parser.add_argument("--episodes", type=int, default=50)
     args = parser.parse_args()
-    params = load_params(args.params)
+    all_params = load_params(args.params)
+    params = all_params.resolve(args.task or all_params.evolve or all_params.tasks[0])
+    family = get_family(params.family)
+
+    def make_env():
+        return family.make_simulator(params)
+
     device = resolve_device(args.device)
-    env = make_env(params)
-    model_path = Path("models/phase0")
+    env = make_env()
+    model_path = model_dir(params.name, 0)
     if model_path.exists():
         bundle = load_bundle(model_path, device)
-        source = "trained models/phase0"
+        source = f"trained {model_path}"
     else:
         dim = env.obs_dim + env.act_dim
         normalizer = MinMaxNormalizer(-np.ones(dim) * 5, np.ones(dim) * 5)
@@ -90,7 +97,7 @@ def main() -> None:
     # the same DDIM plan with coin guidance (one extra backward pass through the normalizer and J per step)
     planner = Planner(bundle, DDIMSampler(params.planner.sampler_steps), device)
     coin = torch.as_tensor(env.cell_to_xy(env.layout.free_cells[0])[None], dtype=torch.float32, device=device)
-    guidance = planner.guidance(CoinObjective(coin), max(params.alpha, 1.0))
+    guidance = planner.guidance(CoinObjective(coin), max(all_params.alpha, 1.0))
     planner.plan(start_state, goal, seed=0, guidance=guidance)
     _sync(device)
     start = time.perf_counter()
@@ -105,7 +112,7 @@ def main() -> None:
     sampler = DDIMSampler(pl.sampler_steps) if pl.sampler == "ddim" else DDPMSampler()
     controller = PlannerController(Planner(bundle, sampler, device), seed=0, replan_every=pl.replan_every)
     start = time.perf_counter()
-    run_episodes(lambda: make_env(params), controller, args.episodes, 0, args.episodes, progress=False)
+    run_episodes(make_env, controller, args.episodes, 0, args.episodes, progress=False)
     elapsed = time.perf_counter() - start
     print(
         f"evaluation: {args.episodes / elapsed:.2f} episodes/s "
@@ -114,11 +121,12 @@ def main() -> None:
 
     summary = Path("metrics/summary.json")
     if summary.exists():
-        for phase, entry in json.loads(summary.read_text()).items():
-            nav = entry["navigation"]
+        for phase, entry in json.loads(summary.read_text()).get(params.name, {}).items():
+            if not phase.startswith("phase_"):
+                continue
             print(
-                f"score (metrics/summary.json, {phase}): {nav['score_mean']:.1f} +- {nav['score_stderr']:.1f} "
-                f"over {nav['n_episodes']} episodes, success rate {nav['success_rate']:.2f}"
+                f"score (metrics/summary.json, {phase}): {entry['score_mean']:.1f} +- {entry['score_stderr']:.1f} "
+                f"over {entry['n_episodes']} episodes, success rate {entry['success_rate']:.2f}"
             )
     else:
         print("score: run `dvc repro` first (metrics/summary.json not found)")

@@ -9,8 +9,15 @@ import torch
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params
 from adaptdiffuser.data.collect import collect_expert_stream
 from adaptdiffuser.data.schema import Trajectories, make_metadata
-from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.envs.maze2d import Maze2D
+from adaptdiffuser.families.registry import get_family
+
+
+def maze_sim(params: Params | None = None, task: str = "maze2d-umaze") -> Maze2D:
+    """A fresh Maze2D simulator of ``task`` in ``params`` (default params: U-Maze), as the stages build it."""
+    params = Params() if params is None else params
+    resolved = params.resolve(task)
+    return get_family(resolved.family).make_simulator(resolved)
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -21,7 +28,7 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.fixture
 def umaze() -> Maze2D:
     """A fresh U-Maze simulator with the default params."""
-    return make_env(Params())
+    return maze_sim()
 
 
 @pytest.fixture(scope="session")
@@ -37,7 +44,7 @@ def tiny_diffusion_params() -> DiffusionParams:
 @pytest.fixture(scope="session")
 def expert_traj() -> Trajectories:
     """About 3000 steps of the real waypoint expert in U-Maze, cut into episodes as the collect stage does."""
-    env = make_env(Params())
+    env = maze_sim()
     traj = collect_expert_stream(env, steps=3000, seed=0, progress=False)
     traj.metadata = make_metadata("maze2d-umaze", env.obs_dim, env.act_dim, "expert", {"steps": 3000})
     return traj

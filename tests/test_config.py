@@ -14,19 +14,29 @@ from typer.testing import CliRunner
 from adaptdiffuser.cli import app
 from adaptdiffuser.config import (
     ConfigError,
-    EnvParams,
     Params,
+    TaskParams,
     apply_profile,
     deep_merge,
     describe,
     load_params,
+    params_from_dict,
     set_dotted,
     stage_names,
 )
+from adaptdiffuser.families.maze2d.params import EnvParams, Maze2DTaskParams
+from adaptdiffuser.families.registry import get_family
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILES = REPO / "profiles"
 PAPER = {"paper-umaze": ("umaze", 128), "paper-medium": ("medium", 256), "paper-large": ("large", 384)}
+UMAZE = "maze2d-umaze"  # the one task of the quick profile
+T = f"task.{UMAZE}"  # the prefix of its keys in error messages
+
+
+def umaze(**sections: dict) -> dict:
+    """An overlay of the quick profile's U-Maze task entry (``env``, ``collect``, ``diffusion``... overrides)."""
+    return {"task": {UMAZE: sections}}
 
 
 def quick() -> dict:
@@ -42,12 +52,40 @@ def write_params(tmp_path: Path, overlay: dict) -> Path:
 def test_repo_params_load() -> None:
     params = load_params(REPO / "params.yaml")
     assert isinstance(params, Params)
-    assert params.env.maze == "umaze" and params.env.layout is None and params.env.episode_steps is None
+    assert params.tasks == (UMAZE,) and params.coin_tasks == (UMAZE,) and params.evolve == UMAZE
+    task = params.resolve(UMAZE)
+    assert isinstance(task, TaskParams) and params.evolved == task
+    assert (task.name, task.family) == (UMAZE, "maze2d") and isinstance(task.settings, Maze2DTaskParams)
+    env = task.settings.env
+    assert env.maze == "umaze" and env.layout is None and env.episode_steps is None
+    assert task.settings.episode_steps == 300 and task.settings.maze_name == "umaze"
     assert params.model.dim == 16 and params.model.dim_mults == [1, 4, 8]
     assert params.diffusion.horizon == 128 and params.pretrain.lr == pytest.approx(2e-4)
-    assert params.planner.sampler == "ddim" and params.task == "maze2d-umaze"
+    assert params.planner.sampler == "ddim"
     assert (params.planner.tracking_p_gain, params.planner.tracking_d_gain) == (2.0, 0.5)
-    assert params.section("collect") == {"steps": 200_000, "seed": 0}
+    # the task has no overrides: its generic sections are the top-level ones
+    assert (task.model, task.diffusion, task.pretrain, task.planner, task.evaluate) == (
+        params.model,
+        params.diffusion,
+        params.pretrain,
+        params.planner,
+        params.evaluate,
+    )
+    assert task.section("collect") == {"steps": 200_000, "seed": 0}
+    assert task.section("planner") == params.section("planner")
+
+
+def test_default_params_have_one_umaze_task() -> None:
+    params = Params()
+    assert params.tasks == (UMAZE,) and params.coin_tasks == (UMAZE,) and params.evolve == UMAZE
+    assert list(params.task) == [UMAZE] and params.phases == ()
+    task = params.resolve(UMAZE)
+    assert task.family == "maze2d" and task.settings == Maze2DTaskParams()
+    assert task.settings.env == EnvParams() and task.settings.episode_steps == 300
+    assert task.diffusion == params.diffusion and task.model == params.model
+    with pytest.raises(ConfigError, match=r"^task\.maze2d-medium: no such task") as err:
+        params.resolve("maze2d-medium")
+    assert len(str(err.value).splitlines()) == 1
 
 
 def test_params_is_the_quick_profile() -> None:
@@ -55,7 +93,13 @@ def test_params_is_the_quick_profile() -> None:
 
 
 def test_profile_list() -> None:
-    assert {p.stem for p in PROFILES.glob("*.yaml")} == {"quick", "smoke", *PAPER}
+    assert {p.stem for p in PROFILES.glob("*.yaml")} == {
+        "quick",
+        "smoke",
+        "quick-locomotion",
+        "paper-locomotion",
+        *PAPER,
+    }
 
 
 @pytest.mark.parametrize("profile", sorted(p.stem for p in PROFILES.glob("*.yaml")))
@@ -69,12 +113,34 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert out.read_text().startswith(f"# Written by `adaptdiffuser profile {profile}`")
     if profile in PAPER:
         maze, horizon = PAPER[profile]
-        assert params.model.dim == 32 and params.model.dim_mults == [1, 4, 8]
-        assert params.env.maze == maze and params.diffusion.horizon == horizon
-        assert params.planner.sampler == "ddpm"
+        task = params.evolved
+        assert task.family == "maze2d" and task.name in params.tasks and task.name in params.coin_tasks
+        assert task.model.dim == 32 and task.model.dim_mults == [1, 4, 8]
+        assert task.settings.env.maze == maze and task.diffusion.horizon == horizon
+        assert task.planner.sampler == "ddpm"
     if profile == "smoke":
         assert params.pretrain.steps == 20 and params.diffusion.horizon == 32
-        assert params.env.maze == "umaze" and params.expert.p_gain == 10.0  # inherited from quick
+        maze = params.resolve(UMAZE)
+        assert maze.settings.collect.steps == 4000 and maze.diffusion.horizon == 32
+        assert maze.settings.env.maze == "umaze" and maze.settings.expert.p_gain == 10.0  # inherited from quick
+        hopper = params.resolve("hopper-medium")  # one task of each family, with its own generic overrides
+        assert params.tasks == (UMAZE, "hopper-medium") and params.coin_tasks == (UMAZE,)
+        assert hopper.family == "locomotion" and hopper.settings.episode_steps == 40
+        assert hopper.diffusion.horizon == 16 and hopper.model.dim_mults == [1, 2]
+        assert hopper.pretrain == params.pretrain  # not overridden: the top-level section
+    if profile == "quick-locomotion":
+        # `phases: {}` and `coin_tasks: []` replace the quick profile's (an empty mapping is not merged)
+        assert params.tasks == ("hopper-medium",) and params.coin_tasks == () and params.evolve is None
+        assert params.phases == () and params.phase_names == []
+        hopper = params.resolve("hopper-medium")
+        assert hopper.family == "locomotion" and hopper.diffusion.horizon == 32
+    if profile == "paper-locomotion":
+        assert len(params.tasks) == 9 and params.coin_tasks == () and params.evolve is None and params.phases == ()
+        assert {params.resolve(name).family for name in params.tasks} == {"locomotion"}
+        assert (
+            params.resolve("hopper-medium").model.dim == 32 and params.resolve("hopper-medium").diffusion.horizon == 32
+        )
+        assert params.resolve("halfcheetah-medium").diffusion.horizon == 4
     assert sorted(p.name for p in tmp_path.iterdir()) == ["params.yaml"]  # no temporary files left
 
 
@@ -108,7 +174,7 @@ def test_partial_file_takes_defaults(tmp_path: Path) -> None:
 
 
 BAD = [
-    ({"env": {"maze": "mars"}}, "env.maze"),
+    (umaze(env={"maze": "mars"}), rf"{T}.env.maze"),
     ({"pretrain": {"steps": -5}}, "pretrain.steps"),
     ({"diffusion": {"horizon": 102}, "model": {"dim_mults": [1, 4, 8]}}, "diffusion.horizon"),
     ({"diffusion": {"horizon": 100}, "model": {"dim_mults": [1, 2, 4, 8]}}, "diffusion.horizon"),
@@ -126,14 +192,14 @@ BAD = [
     ({"planner": {"sampler": "foo"}}, "planner.sampler"),
     ({"planner": {"sampler_steps": 65}}, "planner.sampler_steps"),
     ({"pretrain": {"ema_decay": 1.0}}, "pretrain.ema_decay"),
-    ({"env": {"goal_radius": 0}}, "env.goal_radius"),
-    ({"env": {"episode_steps": -1}}, "env.episode_steps"),
-    ({"env": {"maze": 7}}, "env.maze"),
-    ({"env": {"layout": ["#####", "#G..", "#####"]}}, "env.layout"),
+    (umaze(env={"goal_radius": 0}), rf"{T}.env.goal_radius"),
+    (umaze(env={"episode_steps": -1}), rf"{T}.env.episode_steps"),
+    (umaze(env={"maze": 7}), rf"{T}.env.maze"),
+    (umaze(env={"layout": ["#####", "#G..", "#####"]}), rf"{T}.env.layout"),
     ({"evaluate": {"episodes": 0}}, "evaluate.episodes"),
     ({"planner": {"tracking_p_gain": 0.0}}, "planner.tracking_p_gain"),
     ({"planner": {"tracking_d_gain": -0.5}}, "planner.tracking_d_gain"),
-    ({"env": {"tracking_p_gain": 1.0}}, "env.tracking_p_gain"),  # the gains live in planner now
+    (umaze(env={"tracking_p_gain": 1.0}), rf"{T}.env.tracking_p_gain"),  # the gains live in planner
     ({"pretrain": {"expert_fraction": 0.0}}, "pretrain.expert_fraction"),
     ({"phases": {"phase1": {"previous": 1}}}, "phases.phase1.previous"),
     ({"phases": {"phase3": {}}}, "phases.phase3.previous"),
@@ -154,9 +220,20 @@ BAD = [
     ({"phases": {"phase1": {"previous": 0}}, "evolution": {"finetune": {"expert_weight": 1.0}}}, "expert_weight"),
     ({"phases": {"phase1": {"previous": 0}}, "evolution": {"generate": {"sampler_steps": 65}}}, "sampler_steps"),
     (
-        {"phases": {"phase1": {"previous": 0}}, "env": {"layout": ["###", "#G#", "#.#", "###"]}},
-        "rule 'paper'",
+        {"phases": {"phase1": {"previous": 0}}, **umaze(env={"layout": ["###", "#G#", "#.#", "###"]})},
+        "phases.phase1.discriminate.rule: the rule 'paper'",
     ),
+    # the maze sections are a task's now: at the top level they are unknown keys
+    ({"env": {"maze": "umaze"}}, "env: unknown key"),
+    ({"collect": {"steps": 10}}, "collect: unknown key"),
+    ({"gold_coin": {"seed": 1}}, "gold_coin: unknown key"),
+    # a task's overrides of the generic sections are checked as the sections are, under the task's key
+    (umaze(diffusion={"horizon": 102}), rf"{T}.diffusion.horizon"),
+    (umaze(diffusion={"horizonz": 128}), rf"{T}.diffusion.horizonz"),
+    (umaze(pretrain={"lr": "fast"}), rf"{T}.pretrain.lr"),
+    (umaze(planner={"sampler_steps": 65}), rf"{T}.planner.sampler_steps"),
+    (umaze(model={"dim_mults": [1, 0]}), rf"{T}.model.dim_mults"),
+    (umaze(evolution={"generate": {"tasks": 3}}), rf"{T}.evolution"),  # not a per-task section
 ]
 
 
@@ -168,7 +245,8 @@ def test_bad_values_raise_config_error_naming_the_key(tmp_path: Path, overlay: d
 
 
 NAN, INF = float("nan"), float("inf")
-SEEDS = ["collect.seed", "pretrain.seed", "evaluate.seed", "gold_coin.seed", "sweep.seed"]
+SEEDS = [f"{T}.collect.seed", "pretrain.seed", "evaluate.seed", f"{T}.gold_coin.seed", "sweep.seed"]
+SEEDS += [f"{T}.pretrain.seed", f"{T}.evaluate.seed"]
 SEEDS += ["evolution.generate.seed", "evolution.finetune.seed"]
 PHASE1 = {"phases": {"phase1": {"previous": 0}}}
 # values the hand-written loader used to accept (or crash on): each is a one-line ConfigError starting with its key
@@ -176,7 +254,7 @@ REJECTED = [
     ({"pretrain": {"lr": NAN}}, "pretrain.lr", "must be a finite number, got nan"),
     ({"pretrain": {"lr": INF}}, "pretrain.lr", "must be a finite number, got inf"),
     ({"pretrain": {"lr": -INF}}, "pretrain.lr", "must be a finite number, got -inf"),
-    ({"env": {"goal_radius": NAN}}, "env.goal_radius", "must be a finite number, got nan"),
+    (umaze(env={"goal_radius": NAN}), f"{T}.env.goal_radius", "must be a finite number, got nan"),
     ({"alpha": INF}, "alpha", "must be a finite number, got inf"),
     ({"evolution": {"discriminate": {"max_error": NAN}}}, "evolution.discriminate.max_error", "finite"),
     *[(set_dotted({}, key, -1), key, "must be >= 0, got -1") for key in SEEDS],
@@ -184,13 +262,17 @@ REJECTED = [
     (PHASE1 | {"phases": {"phase1": {"previous": 0, "finetune": {"seed": -3}}}}, "phases.phase1.finetune.seed", ">= 0"),
     ({"sweep": {"heartbeat_s": 0}}, "sweep.heartbeat_s", "must be > 0, got 0"),
     ({"sweep": {"pruner_startup_trials": -1}}, "sweep.pruner_startup_trials", "must be >= 0"),
-    ({"env": {"episode_steps": 100}}, "env.episode_steps", "100 is shorter than diffusion.horizon=128"),
-    ({"diffusion": {"horizon": 320}}, "env.episode_steps", "null means the maze2d-umaze protocol's 300 steps"),
+    (umaze(env={"episode_steps": 100}), f"{T}.env.episode_steps", "100 is shorter than diffusion.horizon=128"),
+    ({"diffusion": {"horizon": 320}}, f"{T}.env.episode_steps", "null means the maze umaze protocol's 300 steps"),
     (
-        {"env": {"maze": "large"}, "diffusion": {"horizon": 1024}},
-        "env.episode_steps",
-        "maze2d-large protocol's 800 steps, shorter than diffusion.horizon=1024",
+        umaze(env={"maze": "large"}) | {"diffusion": {"horizon": 1024}},
+        f"{T}.env.episode_steps",
+        "maze large protocol's 800 steps, shorter than diffusion.horizon=1024",
     ),
+    # the task's own horizon counts, not the top-level one
+    (umaze(diffusion={"horizon": 320}), f"{T}.env.episode_steps", "shorter than diffusion.horizon=320"),
+    (umaze(planner={"sampler_steps": 65}), f"{T}.planner.sampler_steps", "65 exceeds diffusion.n_steps=64"),
+    (umaze(diffusion={"n_steps": 8}), f"{T}.planner.sampler_steps", "16 exceeds diffusion.n_steps=8"),
     ({"planner": {"sampler_steps": 65}}, "planner.sampler_steps", "exceeds diffusion.n_steps=64"),
     (
         {"phases": {"phase1": {"previous": 0, "generate": {"sampler_steps": 65}}}},
@@ -204,9 +286,9 @@ REJECTED = [
     ({"phases": {"phase1": {"previous": 0, "sampler": "ddim"}}}, "phases.phase1.sampler", "unknown key"),
     ({"phases": {"phase1": {"previous": -1}}}, "phases.phase1.previous", "must be >= 0, got -1"),
     ({"phases": {"phase1": {"previous": 0.5}}}, "phases.phase1.previous", "must be an integer, got 0.5"),
-    ({"env": {"random_goal": "yes"}}, "env.random_goal", "must be true or false, got 'yes'"),
-    ({"env": {"random_goal": 1}}, "env.random_goal", "must be true or false, got 1"),
-    ({"collect": {"steps": 1.5}}, "collect.steps", "must be an integer, got 1.5"),
+    (umaze(env={"random_goal": "yes"}), f"{T}.env.random_goal", "must be true or false, got 'yes'"),
+    (umaze(env={"random_goal": 1}), f"{T}.env.random_goal", "must be true or false, got 1"),
+    (umaze(collect={"steps": 1.5}), f"{T}.collect.steps", "must be an integer, got 1.5"),
     ({"model": {"dim_mults": []}}, "model.dim_mults", "non-empty list of positive integers"),
     ({"sweep": {"trials": 0}}, "sweep.trials", "must be > 0"),
     ({"sweep": {"objective": "speed"}}, "sweep.objective", "must be one of 'navigation', 'coin', 'mix'"),
@@ -215,6 +297,70 @@ REJECTED = [
     ({"sweep": {"space": {"alpha": 3}}}, "sweep.space.alpha", "must be a mapping"),
     ({"sweep": {"space": [1, 2]}}, "sweep.space", "must map params keys to ranges"),
     ({"sweep": {"storage": 5}}, "sweep.storage", "must be a string, got 5"),
+    # the task lists: `tasks` names defined tasks, `coin_tasks` exactly its maze2d ones, `evolve` one of `tasks`
+    ({"tasks": []}, "tasks", "must list at least one task"),
+    ({"tasks": None}, "tasks", "must list at least one task"),
+    ({"tasks": ["maze2d-medium"]}, "tasks", "'maze2d-medium' is not a task defined under 'task'"),
+    ({"tasks": [UMAZE, UMAZE]}, "tasks", "lists a task twice"),
+    ({"coin_tasks": []}, "coin_tasks", "must list exactly the tasks of 'tasks' that need this stage: ['maze2d-umaze']"),
+    ({"coin_tasks": ["maze2d-medium"]}, "coin_tasks", "'maze2d-medium' is not a task defined under 'task'"),
+    (
+        {
+            "task": {"maze2d-medium": {"family": "maze2d", "env": {"maze": "medium"}}},
+            "coin_tasks": [UMAZE, "maze2d-medium"],
+        },
+        "coin_tasks",
+        "must list exactly the tasks of 'tasks' that need this stage: ['maze2d-umaze']",
+    ),
+    (
+        {
+            "task": {"hopper-medium": {"family": "locomotion"}},
+            "tasks": [UMAZE, "hopper-medium"],
+            "coin_tasks": [UMAZE, "hopper-medium"],
+        },
+        "coin_tasks",
+        "must list exactly the tasks of 'tasks' that need this stage: ['maze2d-umaze']",
+    ),
+    ({"evolve": "maze2d-medium"}, "evolve", "'maze2d-medium' must be one of tasks ['maze2d-umaze'] (or null)"),
+    (
+        {"task": {"maze2d-medium": {"family": "maze2d", "env": {"maze": "medium"}}}, "evolve": "maze2d-medium"},
+        "evolve",
+        "must be one of tasks ['maze2d-umaze']",
+    ),
+    ({"evolve": None}, "evolve", "is null but phases are declared"),
+    (
+        {
+            "task": {"hopper-medium": {"family": "locomotion"}},
+            "tasks": [UMAZE, "hopper-medium"],
+            "evolve": "hopper-medium",
+        },
+        "evolve",
+        "not implemented for the locomotion family",
+    ),
+    # task entries: names, families, their shape
+    ({"task": None}, "task", "must be a mapping of task names to their settings"),
+    ({"task": {"hopper-fast": {"family": "locomotion"}}}, "task.hopper-fast", "unknown locomotion task 'hopper-fast'"),
+    (
+        {
+            "tasks": ["hopper-medium"],
+            "coin_tasks": [],
+            "evolve": None,
+            "phases": {},
+            "task": {"hopper-medium": {"family": "locomotion", "episode_steps": 10}},
+        },
+        "task.hopper-medium.episode_steps",
+        "10 is shorter than diffusion.horizon=128",
+    ),
+    ({"task": {"hopper-medium": {"family": "locomotion", "env": {}}}}, "task.hopper-medium.env", "unknown"),
+    ({"task": {"Maze2D": {"family": "maze2d"}}}, "task.Maze2D", "task names are lower-case letters"),
+    (
+        {"task": {"maze2d-medium": {"family": "quadcopter"}}},
+        "task.maze2d-medium.family",
+        "must be one of ['locomotion', 'maze2d']",
+    ),
+    ({"task": {"maze2d-medium": {"env": {"maze": "medium"}}}}, "task.maze2d-medium.family", "got None"),
+    ({"task": {"maze2d-medium": 5}}, "task.maze2d-medium", "must be a mapping with a 'family' key, got 5"),
+    (umaze(diffusion=5), f"{T}.diffusion", "must be a mapping of diffusion keys to override, got 5"),
 ]
 
 
@@ -238,10 +384,19 @@ def test_rejected_values_give_a_one_line_error_starting_with_the_key(
         ("lr: 0.0002", "lr: .nan", "pretrain.lr: must be a finite number, got nan"),
         ("lr: 0.0002", "lr: .inf", "pretrain.lr: must be a finite number, got inf"),
         ("lr: 0.0002", "lr: 1e999", "pretrain.lr: must be a finite number, got inf"),  # YAML 1.1: a string
-        ("goal_radius: 0.5", "goal_radius: .NaN", "env.goal_radius: must be a finite number, got nan"),
-        ("  seed: 0\nmodel", "  seed: -1\nmodel", "collect.seed: must be >= 0, got -1"),
+        ("goal_radius: 0.5", "goal_radius: .NaN", f"{T}.env.goal_radius: must be a finite number, got nan"),
+        ("  seed: 0\n    gold_coin", "  seed: -1\n    gold_coin", f"{T}.collect.seed: must be >= 0, got -1"),
         ("heartbeat_s: 30", "heartbeat_s: 0", "sweep.heartbeat_s: must be > 0, got 0"),
-        ("episode_steps: null", "episode_steps: 64", "env.episode_steps: 64 is shorter than diffusion.horizon=128"),
+        (
+            "episode_steps: null",
+            "episode_steps: 64",
+            f"{T}.env.episode_steps: 64 is shorter than diffusion.horizon=128",
+        ),
+        ("tasks: [maze2d-umaze]", "tasks: []", "tasks: must list at least one task"),
+        ("coin_tasks: [maze2d-umaze]", "coin_tasks: []", "coin_tasks: must list exactly the tasks of 'tasks'"),
+        ("evolve: maze2d-umaze", "evolve: null", "evolve: is null but phases are declared"),
+        ("evolve: maze2d-umaze", "evolve: maze2d-large", "evolve: 'maze2d-large' must be one of tasks"),
+        ("    family: maze2d", "    family: maze3d", f"{T}.family: must be one of ['locomotion', 'maze2d']"),
         ("phase1: {previous: 0}", "phase1: 3", "phases.phase1: must be a mapping"),
         ("random_goal: false", "random_goal: no", None),  # YAML 1.1 reads `no` as false: accepted
     ],
@@ -263,10 +418,19 @@ def test_replace_revalidates_and_models_are_frozen() -> None:
     params = Params()
     with pytest.raises(ValueError, match="finite"):
         dataclasses.replace(params.pretrain, lr=NAN)
+    task = params.resolve(UMAZE)
     with pytest.raises(ValueError, match="unknown maze"):
-        dataclasses.replace(params, env=EnvParams(maze="mars"))
+        dataclasses.replace(task.settings.env, maze="mars")
+    with pytest.raises(ValueError, match="unknown maze"):
+        EnvParams(maze="mars")
+    with pytest.raises(ValueError, match="horizon"):  # replacing a section re-runs the cross-section checks
+        dataclasses.replace(params, diffusion=dataclasses.replace(params.diffusion, horizon=102))
     with pytest.raises(dataclasses.FrozenInstanceError):
         params.pretrain.lr = 1.0  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        task.settings.env.maze = "large"  # type: ignore[misc]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        task.diffusion = params.diffusion  # type: ignore[misc]
     assert dataclasses.replace(params.pretrain, steps=3).steps == 3
     assert pickle.loads(pickle.dumps(load_params(REPO / "params.yaml"))) == load_params(REPO / "params.yaml")
 
@@ -274,17 +438,45 @@ def test_replace_revalidates_and_models_are_frozen() -> None:
 def test_describe_lists_the_task_and_the_stages_dvc_runs() -> None:
     params = load_params(REPO / "params.yaml")
     lines = describe(params)
-    assert lines[0].startswith("task: maze2d-umaze") and "300-step episodes" in lines[0]
+    assert lines[0].startswith(f"tasks: {UMAZE}")
+    assert lines[1].startswith(f"task {UMAZE}: family maze2d, horizon 128")
+    task = params.resolve(UMAZE)
+    assert get_family("maze2d").describe(task) == {"maze": "umaze", "episode_steps": 300}  # 300-step episodes
     stages = [line.strip().split(":")[0] for line in lines[lines.index("stages:") + 1 :]]
     assert stages == stage_names(params)
-    assert stages[:5] == ["collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0"]
+    assert stages[:5] == [
+        f"{s}@{UMAZE}" for s in ("collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0")
+    ]
     assert stages[5:10] == [
         f"{s}@phase1" for s in ("generate", "discriminate", "finetune", "evaluate", "evaluate-coin")
     ]
     assert stages[-2:] == ["summarize", "report"] and len(stages) == 5 + 5 * 2 + 2
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
-    expanded = {f"{name}@{k}" if "foreach" in spec else name for name, spec in dvc.items() for k in params.phase_names}
+    items = {"${tasks}": params.tasks, "${coin_tasks}": params.coin_tasks, "${phases}": params.phase_names}
+    expanded = {f"{name}@{k}" for name, spec in dvc.items() if "foreach" in spec for k in items[spec["foreach"]]} | {
+        name for name, spec in dvc.items() if "foreach" not in spec
+    }
     assert set(stages) == expanded
+
+
+def test_describe_and_stages_of_a_phase0_only_locomotion_task() -> None:
+    params = params_from_dict(
+        {
+            "tasks": ["hopper-medium"],
+            "coin_tasks": [],
+            "evolve": None,
+            "task": {"hopper-medium": {"family": "locomotion"}},
+        }
+    )
+    stages = stage_names(params)
+    assert stages == [
+        *(f"{s}@hopper-medium" for s in ("collect", "reference", "pretrain", "evaluate-phase0")),
+        "summarize",
+        "report",
+    ]
+    lines = describe(params)
+    assert lines[0].startswith("tasks: hopper-medium") and "evolve: None, phases: 0" in lines
+    assert any(line.strip().startswith("+ value function") for line in lines)
 
 
 def test_phases_merge_their_overrides_over_the_evolution_defaults(tmp_path: Path) -> None:
@@ -310,15 +502,19 @@ def test_phases_merge_their_overrides_over_the_evolution_defaults(tmp_path: Path
 def test_horizon_divisibility_follows_the_unet_factor(tmp_path: Path) -> None:
     # dim_mults [1, 4, 8] halves the horizon twice, so 100 (divisible by 4) is a valid horizon
     params = load_params(write_params(tmp_path, {"diffusion": {"horizon": 100}, "model": {"dim_mults": [1, 4, 8]}}))
-    assert params.diffusion.horizon == 100
+    assert params.diffusion.horizon == 100 and params.resolve(UMAZE).diffusion.horizon == 100
 
 
 def test_valid_custom_layout_and_episode_length(tmp_path: Path) -> None:
     layout = ["######", "#..#G#", "#....#", "#.##.#", "######"]
     # the paper's reward/length thresholds exist for the three D4RL mazes only, so a custom maze selects by quantile
-    overlay = {"env": {"layout": layout, "episode_steps": 200}, "evolution": {"discriminate": {"rule": "quantile"}}}
+    overlay = umaze(env={"layout": layout, "episode_steps": 200}) | {
+        "evolution": {"discriminate": {"rule": "quantile"}}
+    }
     params = load_params(write_params(tmp_path, overlay))
-    assert params.env.layout == layout and params.env.episode_steps == 200 and params.task == "maze2d-custom"
+    settings = params.resolve(UMAZE).settings
+    assert settings.env.layout == layout and settings.env.episode_steps == 200
+    assert settings.maze_name == "custom" and settings.episode_steps == 200
 
 
 def test_structural_errors(tmp_path: Path) -> None:
@@ -343,6 +539,10 @@ def test_deep_merge() -> None:
     base = {"a": {"x": 1, "y": 2}, "b": 3}
     assert deep_merge(base, {"a": {"y": 5}, "c": 4}) == {"a": {"x": 1, "y": 5}, "b": 3, "c": 4}
     assert base == {"a": {"x": 1, "y": 2}, "b": 3}
+    # an empty mapping replaces the base one (`phases: {}` in a profile means no phases)
+    assert deep_merge(base, {"a": {}}) == {"a": {}, "b": 3}
+    assert deep_merge({"a": {"b": {"x": 1}, "y": 2}}, {"a": {"b": {}}}) == {"a": {"b": {}, "y": 2}}
+    assert deep_merge(base, {}) == base and base == {"a": {"x": 1, "y": 2}, "b": 3}
 
 
 @pytest.mark.parametrize(
@@ -361,7 +561,7 @@ def test_cli_check_accepts_good_params() -> None:
     result = CliRunner().invoke(app, ["check", "--params", str(REPO / "params.yaml")])
     assert result.exit_code == 0, result.output
     assert "ok" in result.output
-    assert "pretrain:" in result.output and "evaluate@phase2" in result.output  # what it will run
+    assert f"pretrain@{UMAZE}:" in result.output and "evaluate@phase2" in result.output  # what it will run
 
 
 def test_cli_profile_writes_params(tmp_path: Path) -> None:
@@ -369,7 +569,7 @@ def test_cli_profile_writes_params(tmp_path: Path) -> None:
     args = ["profile", "paper-medium", "--params", str(out), "--profiles-dir", str(PROFILES)]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
-    assert load_params(out).env.maze == "medium"
+    assert load_params(out).evolved.settings.env.maze == "medium"
     result = CliRunner().invoke(app, ["profile", "nope", "--params", str(out), "--profiles-dir", str(PROFILES)])
     assert result.exit_code == 2 and "unknown profile" in result.output
 
@@ -381,3 +581,73 @@ def test_exponent_without_dot_is_a_number(tmp_path: Path) -> None:
     path.write_text((PROFILES / "quick.yaml").read_text().replace("lr: 0.0002", "lr: fast"))
     with pytest.raises(ConfigError, match="pretrain.lr"):
         load_params(path)
+
+
+def test_task_override_is_merged_over_the_top_level_section(tmp_path: Path) -> None:
+    medium = {"family": "maze2d", "env": {"maze": "medium"}, "diffusion": {"horizon": 256, "n_steps": 128}}
+    overlay = {
+        "tasks": [UMAZE, "maze2d-medium"],
+        "coin_tasks": [UMAZE, "maze2d-medium"],
+        "task": {"maze2d-medium": medium | {"model": {"dim": 32}, "planner": {"sampler": "ddpm"}}},
+    }
+    params = load_params(write_params(tmp_path, overlay))
+    m, u = params.resolve("maze2d-medium"), params.resolve(UMAZE)
+    # the overridden keys are the task's, every other key of the section is the top level's
+    assert m.diffusion == dataclasses.replace(params.diffusion, horizon=256, n_steps=128)
+    assert m.model == dataclasses.replace(params.model, dim=32) and m.model.dim_mults == [1, 4, 8]
+    assert m.planner == dataclasses.replace(params.planner, sampler="ddpm")
+    assert (m.pretrain, m.evaluate) == (params.pretrain, params.evaluate)
+    assert m.settings.env.maze == "medium" and m.settings.episode_steps == 600
+    # the other task keeps the top-level sections
+    assert (u.diffusion, u.model, u.planner) == (params.diffusion, params.model, params.planner)
+    assert params.diffusion.horizon == 128 and params.model.dim == 16
+    assert m.section("diffusion")["horizon"] == 256 and u.section("diffusion")["horizon"] == 128
+    # the evolution phases sample with the evolved task's diffusion steps
+    assert params.evolved == u
+    steps = {"evolution": {"generate": {"sampler_steps": 100}}}
+    evolved = load_params(write_params(tmp_path, overlay | steps | {"evolve": "maze2d-medium"}))
+    assert evolved.evolved == m and evolved.phase(1).generate.sampler_steps == 100
+    with pytest.raises(ConfigError, match=r"^phases\.phase1\.generate\.sampler_steps: .*n_steps=64 of maze2d-umaze"):
+        load_params(write_params(tmp_path, overlay | steps))
+
+
+def test_paper_rule_is_checked_on_the_evolved_task_only(tmp_path: Path) -> None:
+    custom = {"family": "maze2d", "env": {"layout": ["######", "#..#G#", "#....#", "#.##.#", "######"]}}
+    overlay = {"tasks": [UMAZE, "maze2d-custom"], "coin_tasks": [UMAZE, "maze2d-custom"]}
+    overlay["task"] = {"maze2d-custom": custom}
+    params = load_params(write_params(tmp_path, overlay))  # evolve: maze2d-umaze, rule paper
+    assert (
+        params.phase(1).discriminate.rule == "paper" and params.resolve("maze2d-custom").settings.maze_name == "custom"
+    )
+    with pytest.raises(ConfigError) as err:
+        load_params(write_params(tmp_path, overlay | {"evolve": "maze2d-custom"}))
+    message = str(err.value)
+    assert message.startswith("phases.phase1.discriminate.rule: the rule 'paper'") and "maze2d-custom" in message
+    assert len(message.splitlines()) == 1
+
+
+def test_locomotion_task_entry_validates_and_bad_names_are_rejected() -> None:
+    raw = {
+        "tasks": ["hopper-medium"],
+        "coin_tasks": [],
+        "evolve": None,
+        "task": {"hopper-medium": {"family": "locomotion", "episode_steps": 200, "diffusion": {"horizon": 32}}},
+    }
+    params = params_from_dict(raw)
+    assert list(params.task) == ["hopper-medium"] and params.phases == ()
+    task = params.resolve("hopper-medium")
+    assert task.family == "locomotion" and task.settings.episode_steps == 200
+    assert task.diffusion.horizon == 32 and task.diffusion.n_steps == params.diffusion.n_steps
+    assert get_family(task.family).describe(task) == {"env_id": "Hopper-v5", "dataset": "medium", "episode_steps": 200}
+    with pytest.raises(ConfigError, match="evolve: is null, so no evolution phase runs"):
+        _ = params.evolved
+    # walker2d-medium-replay is a known robot and dataset too
+    walker = raw | {"tasks": ["walker2d-medium-replay"], "task": {"walker2d-medium-replay": {"family": "locomotion"}}}
+    assert params_from_dict(walker).resolve("walker2d-medium-replay").family == "locomotion"
+    for bad in ("hopper-fast", "quadruped-medium"):
+        entry = raw | {"tasks": [bad], "task": {bad: {"family": "locomotion"}}}
+        with pytest.raises(ConfigError) as err:
+            params_from_dict(entry)
+        message = str(err.value)
+        assert message.startswith(f"task.{bad}: unknown locomotion task {bad!r}"), message
+        assert len(message.splitlines()) == 1

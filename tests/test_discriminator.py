@@ -7,14 +7,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import maze_sim
 
 from adaptdiffuser.checkpoint import make_bundle
-from adaptdiffuser.config import DiffusionParams, DiscriminateParams, ModelParams, Params
+from adaptdiffuser.config import DiffusionParams, DiscriminateParams, ModelParams
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import read_trajectories, write_trajectories
 from adaptdiffuser.data.windows import WindowDataset
 from adaptdiffuser.diffusion.samplers import DDIMSampler
-from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evolution.discriminator import (
     PAPER_MAZE_RULES,
     discriminate,
@@ -33,7 +33,7 @@ THRESHOLD = 0.3
 
 def expert_states(steps: int, start_cell: tuple[int, int], goal_cell: tuple[int, int]) -> np.ndarray:
     """A dynamically feasible state sequence: the expert driving from one U-Maze cell to another."""
-    env = make_env(Params())
+    env = maze_sim()
     env.set_goal(goal_cell)
     obs = env.reset(np.random.default_rng(0), cell=start_cell)
     states = [obs]
@@ -44,7 +44,7 @@ def expert_states(steps: int, start_cell: tuple[int, int], goal_cell: tuple[int,
 
 
 def test_a_plan_through_a_wall_is_rejected() -> None:
-    env = make_env(Params())
+    env = maze_sim()
     # straight down from cell (1, 1) to cell (3, 1) of U-Maze, through the wall cell (2, 1)
     y = np.linspace(1.0, -1.0, 64)
     vy = np.gradient(y) / 0.01
@@ -58,7 +58,7 @@ def test_a_plan_through_a_wall_is_rejected() -> None:
 
 
 def test_a_plan_the_controller_can_follow_is_kept_with_its_real_states_and_actions() -> None:
-    env = make_env(Params())
+    env = maze_sim()
     plan = expert_states(128, start_cell=(3, 1), goal_cell=(1, 3))
     tracked = track_plan(env, plan, goal=np.array([*env.cell_to_xy((1, 3)), 0.0, 0.0]))
     assert passes_tracking(tracked, THRESHOLD), tracked.max_error
@@ -109,7 +109,7 @@ def test_top_k_selection() -> None:
 
 
 def test_sampled_tasks_use_distinct_free_cells_and_are_reproducible() -> None:
-    env = make_env(Params())
+    env = maze_sim()
     a = sample_navigation_tasks(env, 50, np.random.default_rng(3))
     b = sample_navigation_tasks(env, 50, np.random.default_rng(3))
     np.testing.assert_array_equal(a.starts, b.starts)
@@ -122,7 +122,7 @@ def test_sampled_tasks_use_distinct_free_cells_and_are_reproducible() -> None:
 
 
 def test_generated_plans_hit_their_tasks_and_kept_data_round_trips(tmp_path: Path) -> None:
-    env = make_env(Params())
+    env = maze_sim()
     torch.manual_seed(0)
     normalizer = MinMaxNormalizer(np.array([-1, -1, -2, -2, -5, -5.0]), np.array([1, 1, 2, 2, 5, 5.0]))
     bundle = make_bundle(ModelParams(dim=8, dim_mults=[1, 2]), DiffusionParams(horizon=16, n_steps=4), 4, 2, normalizer)
@@ -157,7 +157,7 @@ def test_generated_plans_hit_their_tasks_and_kept_data_round_trips(tmp_path: Pat
 
 def _wall_and_feasible_plans() -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
     """Three plans in U-Maze: two the expert drove (one reaching its goal early, one late) and one through a wall."""
-    env = make_env(Params())
+    env = maze_sim()
     goal = np.array([*env.cell_to_xy((1, 3)), 0.0, 0.0])
     early = expert_states(128, start_cell=(1, 2), goal_cell=(1, 3))
     late = expert_states(128, start_cell=(3, 1), goal_cell=(1, 3))
@@ -169,7 +169,7 @@ def _wall_and_feasible_plans() -> tuple[list[np.ndarray], list[np.ndarray], np.n
 
 
 def test_discriminate_rejects_by_tracking_then_selects_by_real_reward() -> None:
-    env = make_env(Params())
+    env = maze_sim()
     states, actions, goals = _wall_and_feasible_plans()
     cfg = DiscriminateParams(max_error=THRESHOLD, rule="quantile", quantile=1.0)
     judgement = discriminate(env, states, actions, goals, cfg, "umaze", progress=False)
@@ -194,7 +194,7 @@ def test_discriminate_rejects_by_tracking_then_selects_by_real_reward() -> None:
 
 
 def test_discriminate_without_tracking_takes_plans_at_their_word() -> None:
-    env = make_env(Params())
+    env = maze_sim()
     states, actions, goals = _wall_and_feasible_plans()
     cfg = DiscriminateParams(tracking=False, rule="top_k", top_k=3)
     judgement = discriminate(env, states, actions, goals, cfg, "umaze", progress=False)
@@ -208,7 +208,7 @@ def test_discriminate_without_tracking_takes_plans_at_their_word() -> None:
 
 
 def test_paper_rule_scores_length_as_the_trajectory_length() -> None:
-    env = make_env(Params())
+    env = maze_sim()
     states, actions, goals = _wall_and_feasible_plans()
     judgement = discriminate(
         env, states, actions, goals, DiscriminateParams(max_error=THRESHOLD, rule="paper"), "umaze", progress=False

@@ -32,6 +32,7 @@ from adaptdiffuser.stages.pretrain import run_pretrain
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = torch.device("cpu")
+TASK = "maze2d-umaze"  # the smoke profile's evolved task
 
 
 def _with_phase1(params: Params, **discriminate: object) -> Params:
@@ -46,20 +47,22 @@ def phase1_root(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Params]
     root = tmp_path_factory.mktemp("evolution")
     apply_profile("smoke", REPO / "profiles", root / "params.yaml")
     params = load_params(root / "params.yaml")
-    run_collect(params, root, progress=False)
-    run_pretrain(params, root, CPU, progress=False)
-    run_generate(params, root, 1, CPU, progress=False)
-    run_discriminate(params, root, 1, progress=False)
-    run_finetune(params, root, 1, CPU, progress=False)
+    assert params.evolve == TASK
+    run_collect(params, TASK, root, progress=False)
+    run_pretrain(params, TASK, root, CPU, progress=False)
+    run_generate(params, TASK, root, 1, CPU, progress=False)
+    run_discriminate(params, TASK, root, 1, progress=False)
+    run_finetune(params, TASK, root, 1, CPU, progress=False)
     return root, params
 
 
 def test_generated_file_holds_one_plan_per_task(phase1_root: tuple[Path, Params]) -> None:
     root, params = phase1_root
-    generated = read_trajectories(root / generated_path(1))
-    assert generated.metadata["source"] == "synthetic"
+    generated = read_trajectories(root / generated_path(TASK, 1))
+    assert generated_path(TASK, 1) == Path(f"data/{TASK}/phase1/generated.parquet")
+    assert generated.metadata["source"] == "synthetic" and generated.metadata["env"] == TASK
     assert len(generated.episodes()) == params.phase(1).generate.tasks
-    assert len(generated) == params.phase(1).generate.tasks * params.diffusion.horizon
+    assert len(generated) == params.phase(1).generate.tasks * params.resolve(TASK).diffusion.horizon
     # each plan starts at its task's start and ends at its goal (inpainting)
     first = generated.episodes()[3]
     np.testing.assert_allclose(generated.observation[first][0], generated.extra["task_start"][first][0], atol=1e-4)
@@ -68,18 +71,20 @@ def test_generated_file_holds_one_plan_per_task(phase1_root: tuple[Path, Params]
 
 def test_selected_file_and_report(phase1_root: tuple[Path, Params]) -> None:
     root, params = phase1_root
-    selected = read_trajectories(root / selected_path(1))
-    report = json.loads((root / discriminator_metrics_path(1)).read_text())
+    selected = read_trajectories(root / selected_path(TASK, 1))
+    report = json.loads((root / discriminator_metrics_path(TASK, 1)).read_text())
     assert report["kept"] == len(selected.episodes()) >= 1
     assert report["generated"] == params.phase(1).generate.tasks
     assert report["kept"] + report["rejected_tracking"] + report["rejected_reward"] == report["generated"]
-    assert (root / discriminator_plot_path(1)).read_bytes()[:4] == b"\x89PNG"
+    assert (root / discriminator_plot_path(TASK, 1)).read_bytes()[:4] == b"\x89PNG"
 
 
 def test_finetuned_model_loads_keeps_the_normalizer_and_plans(phase1_root: tuple[Path, Params]) -> None:
     root, params = phase1_root
-    phase0 = load_bundle(root / model_dir(0))
-    phase1 = load_bundle(root / model_dir(1))
+    task = params.resolve(TASK)
+    assert model_dir(TASK, 1) == Path(f"models/{TASK}/phase1")
+    phase0 = load_bundle(root / model_dir(TASK, 0))
+    phase1 = load_bundle(root / model_dir(TASK, 1))
     assert phase1.config["phase"] == 1 and phase1.config["previous"] == 0
     assert phase1.normalizer.state_dict() == phase0.normalizer.state_dict()
     assert set(phase1.config["data"]["synthetic"]) == {"phase1"}
@@ -87,20 +92,20 @@ def test_finetuned_model_loads_keeps_the_normalizer_and_plans(phase1_root: tuple
         not torch.equal(a, b) for a, b in zip(phase0.diffusion.parameters(), phase1.diffusion.parameters(), strict=True)
     ]
     assert any(changed)
-    planner = Planner(phase1, DDIMSampler(params.planner.sampler_steps), CPU)
+    planner = Planner(phase1, DDIMSampler(task.planner.sampler_steps), CPU)
     starts = np.array([[1.0, 1.0, 0.0, 0.0], [3.0, 1.0, 0.1, -0.1]])
     goals = np.array([[1.0, 3.0, 0.0, 0.0], [1.0, 3.0, 0.0, 0.0]])
     plan = planner.plan(starts, goals, seed=0)
-    assert plan.shape == (2, params.diffusion.horizon, 6) and np.isfinite(plan).all()
+    assert plan.shape == (2, task.diffusion.horizon, 6) and np.isfinite(plan).all()
     np.testing.assert_allclose(plan[:, 0, 2:], starts, atol=1e-4)
     np.testing.assert_allclose(plan[:, -1, 2:], goals, atol=1e-4)
-    assert finetune_config(params, 1).steps == max(1, round(0.25 * params.pretrain.steps))
+    assert finetune_config(params, task, 1).steps == max(1, round(0.25 * task.pretrain.steps))
 
 
 def test_nothing_selected_stops_plainly_and_writes_no_dataset(phase1_root: tuple[Path, Params], tmp_path: Path) -> None:
     root, params = phase1_root
     strict = _with_phase1(params, max_error=1e-9)
-    before = (root / selected_path(1)).read_bytes()
+    before = (root / selected_path(TASK, 1)).read_bytes()
     with pytest.raises(NothingSelectedError, match="kept none of 16 generated trajectories"):
-        run_discriminate(strict, root, 1, progress=False)
-    assert (root / selected_path(1)).read_bytes() == before  # the earlier output is untouched
+        run_discriminate(strict, TASK, root, 1, progress=False)
+    assert (root / selected_path(TASK, 1)).read_bytes() == before  # the earlier output is untouched

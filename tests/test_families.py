@@ -8,8 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from adaptdiffuser.config import Params, params_from_dict
+from adaptdiffuser.data.normalizer import fit_normalizer
+from adaptdiffuser.diffusion.conditions import CONDITIONINGS
+from adaptdiffuser.envs.maze2d import Maze2D
 from adaptdiffuser.families.base import Family, Simulator
-from adaptdiffuser.families.registry import FAMILIES, get_family
+from adaptdiffuser.families.registry import FAMILIES, get_family, task_params_model
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "adaptdiffuser"
 ALLOWED = {"adaptdiffuser.families", "adaptdiffuser.families.base", "adaptdiffuser.families.registry"}
@@ -43,8 +47,11 @@ def test_every_registered_family_loads_under_its_own_name() -> None:
 
 
 def test_unknown_family_names_the_registered_ones() -> None:
-    with pytest.raises(KeyError, match="registered families: .*locomotion"):
+    assert set(FAMILIES) == {"maze2d", "locomotion"}
+    with pytest.raises(KeyError, match=r"registered families: \['locomotion', 'maze2d'\]"):
         get_family("quadcopter")
+    with pytest.raises(KeyError, match=r"registered families: \['locomotion', 'maze2d'\]"):
+        task_params_model("quadcopter")
 
 
 def test_locomotion_family_builds_the_simulator_of_a_task_name() -> None:
@@ -53,7 +60,41 @@ def test_locomotion_family_builds_the_simulator_of_a_task_name() -> None:
     assert isinstance(sim, Simulator) and (sim.obs_dim, sim.act_dim) == (17, 6)
     obs = sim.reset(np.random.default_rng(0))
     assert obs.shape == (17,) and sim.get_state().shape == (sim.state_dim,)
-    assert family.describe("walker2d-medium-replay") == {"env_id": "Walker2d-v5", "dataset": "medium-replay"}
-    assert family.conditioning == "start" and family.normalizer_kind() == "gaussian"
+    assert sim.episode_steps == 1000
+    task = params_from_dict(
+        {
+            "tasks": ["walker2d-medium-replay"],
+            "coin_tasks": [],
+            "evolve": None,
+            "task": {"walker2d-medium-replay": {"family": "locomotion", "episode_steps": 200}},
+        }
+    ).resolve("walker2d-medium-replay")
+    assert family.describe(task) == {"env_id": "Walker2d-v5", "dataset": "medium-replay", "episode_steps": 200}
+    assert family.make_simulator(task).episode_steps == 200  # the task's protocol length
+    assert family.conditioning == "start" and family.normalizer_kind == "gaussian"
+    assert family.uses_value_function is True
     with pytest.raises(ValueError, match="unknown locomotion task"):
         family.make_simulator("hopper-expertish")
+
+
+def test_maze2d_family_builds_the_simulator_of_a_task() -> None:
+    family = get_family("maze2d")
+    assert family.conditioning == "start_goal" and family.normalizer_kind == "minmax"
+    assert family.uses_value_function is False
+    task = Params().resolve("maze2d-umaze")
+    sim = family.make_simulator(task)
+    assert isinstance(sim, Maze2D) and isinstance(sim, Simulator)
+    assert (sim.obs_dim, sim.act_dim, sim.state_dim) == (4, 2, 4) and sim.episode_steps == 300
+    assert sim.name == "umaze" and family.describe(task) == {"maze": "umaze", "episode_steps": 300}
+    assert family.make_simulator(task) is not sim  # a fresh one each time
+
+
+def test_every_family_declares_its_class_attributes() -> None:
+    for name in FAMILIES:
+        family = get_family(name)
+        assert family.conditioning in CONDITIONINGS
+        assert family.normalizer_kind in ("minmax", "gaussian")
+        fit_normalizer(family.normalizer_kind, np.arange(12.0).reshape(6, 2))  # a kind the pipeline can fit
+        assert isinstance(family.uses_value_function, bool)
+        # the task model of its params entries declares it as its family
+        assert task_params_model(name)().family == name

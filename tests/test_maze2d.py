@@ -6,12 +6,14 @@ import dataclasses
 
 import numpy as np
 import pytest
+from conftest import maze_sim
 from matplotlib.figure import Figure
 
-from adaptdiffuser.config import EnvParams, Params, PlannerParams
-from adaptdiffuser.envs.factory import make_env
+from adaptdiffuser.config import Params, PlannerParams
 from adaptdiffuser.envs.layouts import EPISODE_STEPS, MAZES, parse_layout
 from adaptdiffuser.envs.maze2d import Maze2D, bfs_distances, resolve_layout, shortest_path
+from adaptdiffuser.families.maze2d.params import EnvParams, Maze2DTaskParams
+from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.planning import PlanFollower
 
 CUSTOM = [
@@ -24,9 +26,10 @@ CUSTOM = [
 
 
 def env_for(maze: str | None = None, layout: list[str] | None = None) -> Maze2D:
-    base = Params()
-    env_params = dataclasses.replace(base.env, maze=maze or base.env.maze, layout=layout)
-    return make_env(dataclasses.replace(base, env=env_params))
+    task = Params().resolve("maze2d-umaze")
+    env_params = dataclasses.replace(task.settings.env, maze=maze or task.settings.env.maze, layout=layout)
+    task = dataclasses.replace(task, settings=dataclasses.replace(task.settings, env=env_params))
+    return get_family("maze2d").make_simulator(task)
 
 
 def reaches_goal(env: Maze2D, cell: tuple[int, int], seed: int) -> int | None:
@@ -172,7 +175,8 @@ def test_custom_layout_works_without_new_code() -> None:
     env = env_for(layout=CUSTOM)
     assert env.name == "custom" and env.episode_steps == 300
     np.testing.assert_allclose(env.goal_xy, [1.5, 1.0])
-    assert Params(env=EnvParams(layout=CUSTOM)).task == "maze2d-custom"
+    custom = Maze2DTaskParams(env=EnvParams(layout=CUSTOM))
+    assert custom.maze_name == "custom" and custom.episode_steps == 300
     for cell in layout.free_cells:
         assert reaches_goal(env, cell, seed=0) is not None, cell
 
@@ -209,7 +213,7 @@ def test_unknown_builtin_maze() -> None:
 @pytest.mark.parametrize(("p_gain", "d_gain"), [(1.0, 1.0), (2.0, 0.5)], ids=["diffuser", "default"])
 def test_tracking_action_moves_towards_target(p_gain: float, d_gain: float) -> None:
     params = Params(planner=PlannerParams(tracking_p_gain=p_gain, tracking_d_gain=d_gain))
-    env = make_env(params)
+    env = maze_sim(params)
     start = env.set_state(np.array([*env.cell_to_xy((3, 3)), 0.0, 0.0]))
     target = np.array([*env.cell_to_xy((3, 1)), 0.0, 0.0])
     obs = start
@@ -227,7 +231,7 @@ def test_tracking_action_moves_towards_target(p_gain: float, d_gain: float) -> N
 
 
 def test_tracking_gains_come_from_planner_params() -> None:
-    env = make_env(Params(planner=PlannerParams(tracking_p_gain=3.0, tracking_d_gain=0.25)))
+    env = maze_sim(Params(planner=PlannerParams(tracking_p_gain=3.0, tracking_d_gain=0.25)))
     assert (env.tracking_p_gain, env.tracking_d_gain) == (3.0, 0.25)
     obs = np.array([0.0, 0.0, 0.4, -0.2])
     target = np.array([0.1, -0.05, 0.0, 0.6])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import shutil
@@ -12,23 +13,23 @@ from pathlib import Path
 import mlflow
 import networkx as nx
 import pytest
+import yaml
 from dvc.repo import Repo
 from mlflow.tracking import MlflowClient
 
 from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import load_params
+from adaptdiffuser.config import apply_profile, load_params, stage_names
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.tracking import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
 PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
 PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "evaluate-coin")
+MAZE, HOPPER = "maze2d-umaze", "hopper-medium"
+PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
 STAGES = [
-    "collect",
-    "reference",
-    "pretrain",
-    "evaluate-phase0",
-    "evaluate-coin-phase0",
+    *(f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in PHASE0_STAGES),
+    f"evaluate-coin-phase0@{MAZE}",
     *(f"{stage}@phase{k}" for k in (1, 2) for stage in PHASE_STAGES),
     "summarize",
     "report",
@@ -72,56 +73,79 @@ def smoke_repo(tmp_path_factory) -> Path:
 
 @pytest.mark.e2e
 def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
-    traj = read_trajectories(smoke_repo / "data/expert.parquet")
-    assert len(traj) == 4000 and traj.metadata["source"] == "expert" and traj.metadata["env"] == "maze2d-umaze"
+    traj = read_trajectories(smoke_repo / f"data/{MAZE}/dataset.parquet")
+    assert len(traj) == 4000 and traj.metadata["source"] == "expert" and traj.metadata["env"] == MAZE
 
-    bundle = load_bundle(smoke_repo / "models/phase0")
+    bundle = load_bundle(smoke_repo / f"models/{MAZE}/phase0")
     assert bundle.config["phase"] == 0 and bundle.config["diffusion"]["horizon"] == 32
+    assert bundle.config["conditioning"] == "start_goal" and bundle.normalizer.kind == "minmax"
 
     summary = json.loads((smoke_repo / "metrics/summary.json").read_text())
-    assert set(summary) == {"phase_0", "phase_1", "phase_2"}
-    assert set(summary["phase_0"]) == {"navigation", "gold_coin"}
+    assert set(summary) == {MAZE, HOPPER}
+    maze = summary[MAZE]
+    assert set(maze) == {"phase_0", "phase_1", "phase_2"}
     for k in (0, 1, 2):
-        coin = summary[f"phase_{k}"]["gold_coin"]
+        entry = maze[f"phase_{k}"]
+        coin = entry["gold_coin"]
         assert {"pick_rate", "goal_rate", "both_rate", "collision_rate", "n_episodes"} <= set(coin)
         assert coin["n_episodes"] == 4 and 0.0 <= coin["both_rate"] <= coin["pick_rate"] <= 1.0
-        nav = summary[f"phase_{k}"]["navigation"]
-        assert set(nav) == {"score_mean", "score_stderr", "return_mean", "n_episodes", "success_rate"}
-        assert nav["n_episodes"] == 3 and 0.0 <= nav["success_rate"] <= 1.0
-        assert isinstance(nav["score_mean"], float) and isinstance(nav["n_episodes"], int)
+        assert {"score_mean", "score_stderr", "return_mean", "n_episodes", "success_rate"} <= set(entry)
+        assert entry["n_episodes"] == 3 and 0.0 <= entry["success_rate"] <= 1.0
+        assert isinstance(entry["score_mean"], float) and isinstance(entry["n_episodes"], int)
     for k in (1, 2):
-        disc = summary[f"phase_{k}"]["discriminator"]
+        disc = maze[f"phase_{k}"]["discriminator"]
         assert set(disc) == {"generated", "kept", "kept_fraction", "tracking_error_mean"}
         assert disc["generated"] == 16 and 1 <= disc["kept"] <= 16
         assert disc["kept_fraction"] == disc["kept"] / 16 and disc["tracking_error_mean"] > 0
-        assert load_bundle(smoke_repo / f"models/phase{k}").config["previous"] == k - 1
-        assert len(read_trajectories(smoke_repo / f"data/phase{k}/selected.parquet").episodes()) == disc["kept"]
-        assert (smoke_repo / f"plots/discriminator/phase{k}.png").read_bytes()[:4] == b"\x89PNG"
-    table = (smoke_repo / "metrics/score_by_phase.csv").read_text().splitlines()
-    assert table[0].startswith("phase,score_mean,score_stderr") and [r.split(",")[0] for r in table[1:]] == [
-        "0",
-        "1",
-        "2",
-    ]
-    assert (smoke_repo / "plots/report/score_by_phase.png").read_bytes()[:4] == b"\x89PNG"
-    assert "score_by_phase.csv" in _run(["dvc", "plots", "show", "--json"], smoke_repo)
+        assert load_bundle(smoke_repo / f"models/{MAZE}/phase{k}").config["previous"] == k - 1
+        selected = read_trajectories(smoke_repo / f"data/{MAZE}/phase{k}/selected.parquet")
+        assert len(selected.episodes()) == disc["kept"]
+        assert (smoke_repo / f"plots/{MAZE}/discriminator/phase{k}.png").read_bytes()[:4] == b"\x89PNG"
+    table = (smoke_repo / f"metrics/report/{MAZE}/score_by_phase.csv").read_text().splitlines()
+    assert table[0].startswith("phase,score_mean,score_stderr")
+    assert [r.split(",")[0] for r in table[1:]] == ["0", "1", "2"]
+    assert (smoke_repo / f"plots/report/{MAZE}/score_by_phase.png").read_bytes()[:4] == b"\x89PNG"
 
-    ref = json.loads((smoke_repo / "metrics/reference.json").read_text())
+    ref = json.loads((smoke_repo / f"metrics/tasks/{MAZE}/reference.json").read_text())
     assert ref["r_max"] > ref["r_min"]
-    pictures = sorted((smoke_repo / "plots/phase0").glob("*.png"))
+    pictures = sorted((smoke_repo / f"plots/{MAZE}/phase0").glob("*.png"))
     assert len(pictures) == 1 and pictures[0].read_bytes()[:4] == b"\x89PNG"
-    assert (smoke_repo / "results/phase0/episodes.parquet").exists()
+    assert (smoke_repo / f"results/{MAZE}/phase0/episodes.parquet").exists()
 
     shown = _run(["dvc", "metrics", "show", "--json"], smoke_repo)
     assert "score_mean" in shown
 
 
 @pytest.mark.e2e
+def test_repro_runs_the_locomotion_baseline(smoke_repo: Path) -> None:
+    """hopper-medium: behaviour policy, its dataset with full states, Gaussian-normalized start-conditioned model,
+    value function, value-guided evaluation under D4RL's score, and the dataset's own score in the summary."""
+    traj = read_trajectories(smoke_repo / f"data/{HOPPER}/dataset.parquet")
+    assert len(traj) == 2000 and traj.sim_state is not None and traj.metadata["state_dim"] == 12
+    assert (smoke_repo / f"models/{HOPPER}/collect/medium.zip").exists()
+    bundle = load_bundle(smoke_repo / f"models/{HOPPER}/phase0")
+    assert bundle.config["conditioning"] == "start" and bundle.normalizer.kind == "gaussian"
+    assert bundle.config["diffusion"]["horizon"] == 16 and bundle.config["diffusion"]["action_weight"] == 10.0
+    assert (smoke_repo / f"models/{HOPPER}/phase0/value/value.pt").exists()
+    ref = json.loads((smoke_repo / f"metrics/tasks/{HOPPER}/reference.json").read_text())
+    assert (ref["r_min"], ref["r_max"]) == (-20.272305, 3234.3)
+    assert {"random_score_mean", "behaviour_score_mean", "dataset"} <= set(ref)
+    summary = json.loads((smoke_repo / "metrics/summary.json").read_text())[HOPPER]
+    assert set(summary) == {"dataset", "phase_0"}
+    assert summary["dataset"]["score_mean"] == ref["dataset"]["score_mean"]
+    phase0 = summary["phase_0"]
+    assert phase0["n_episodes"] == 2 and 1 <= phase0["length_mean"] <= 40
+    assert 0.0 <= phase0["terminated_rate"] <= 1.0
+    episodes = (smoke_repo / f"results/{HOPPER}/phase0/episodes.parquet").exists()
+    assert episodes and (smoke_repo / f"plots/{HOPPER}/phase0/plan_00.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.e2e
 def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     client = MlflowClient(tracking_uri=f"sqlite:///{smoke_repo / 'mlflow.db'}")
-    experiment = client.get_experiment_by_name("maze2d-umaze")
+    experiment = client.get_experiment_by_name(MAZE)
     assert experiment is not None
-    assert experiment.artifact_location == (smoke_repo / "mlartifacts/maze2d-umaze").resolve().as_uri()
+    assert experiment.artifact_location == (smoke_repo / f"mlartifacts/{MAZE}").resolve().as_uri()
     runs = client.search_runs([experiment.experiment_id])
     by_stage = {(run.data.tags["stage"], run.data.tags["phase"]): run for run in runs}
     assert len(by_stage) == len(runs)
@@ -142,7 +166,7 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     assert {"checkpoint/model.pt", "checkpoint/ema.pt", "checkpoint/config.json"} <= artifacts
     for k in ("0", "1", "2"):
         evaluate = by_stage["evaluate", k]
-        assert "navigation.score_mean" in evaluate.data.metrics
+        assert "score_mean" in evaluate.data.metrics
         assert [a.path for a in client.list_artifacts(evaluate.info.run_id, "plans")] == ["plans/plan_00.png"]
         coin = by_stage["evaluate-coin", k]
         assert coin.data.params["alpha"] == "10.0" and "gold_coin.both_rate" in coin.data.metrics
@@ -151,9 +175,13 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     finetune = by_stage["finetune", "2"]
     for name in ("expert", "synthetic.phase1", "synthetic.phase2"):
         assert len(finetune.data.params[f"data.{name}.sha256"]) == 64
-    assert finetune.data.params["model.path"] == "models/phase1"
+    assert finetune.data.params["model.path"] == f"models/{MAZE}/phase1"
     assert [m.step for m in client.get_metric_history(finetune.info.run_id, "train_loss")] == [5]
     assert by_stage["discriminate", "1"].data.metrics["discriminator.generated"] == 16
+    # the locomotion task has its own experiment, with the value function's training beside pretraining
+    hopper = client.get_experiment_by_name(HOPPER)
+    stages = {run.data.tags["stage"] for run in client.search_runs([hopper.experiment_id])}
+    assert stages == {"collect", "reference", "pretrain", "value", "evaluate"}
 
 
 @pytest.mark.e2e
@@ -163,22 +191,32 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
 
     params = smoke_repo / "params.yaml"
     original = params.read_text()
+    raw = yaml.safe_load(original)
+
+    def dry_run_with(change) -> set[str]:
+        edited = copy.deepcopy(raw)
+        change(edited)
+        params.write_text(yaml.safe_dump(edited, sort_keys=False))
+        return _dry_run(smoke_repo)
+
+    evaluations = {f"evaluate-phase0@{MAZE}", "evaluate@phase1", "evaluate@phase2"}
+    coin = {f"evaluate-coin-phase0@{MAZE}", "evaluate-coin@phase1", "evaluate-coin@phase2"}
     try:
-        params.write_text(original.replace("episodes: 3", "episodes: 2"))
-        # a dry run lists the stages whose own deps or params changed (summarize follows if metrics change)
-        evaluations = {"evaluate-phase0", "evaluate@phase1", "evaluate@phase2"}
-        coin = {"evaluate-coin-phase0", "evaluate-coin@phase1", "evaluate-coin@phase2"}
-        assert _dry_run(smoke_repo) == {"reference"} | evaluations
-        params.write_text(original.replace("  sampler_steps: 4\n  replan_every", "  sampler_steps: 2\n  replan_every"))
-        assert _dry_run(smoke_repo) == evaluations | coin
-        # a phase-2 param reruns phase 2 only (and the summary that lists the phases)
-        params.write_text(
-            original.replace("phase2:\n    previous: 1", "phase2:\n    previous: 1\n    generate: {tasks: 8}")
+        # a generic evaluation key: every task's reference and evaluations (summarize follows when metrics change)
+        ran = dry_run_with(lambda p: p["evaluate"].update(episodes=2))
+        assert ran == {f"reference@{MAZE}", f"reference@{HOPPER}", f"evaluate-phase0@{HOPPER}", *evaluations}
+        assert dry_run_with(lambda p: p["planner"].update(sampler_steps=2)) == (
+            evaluations | coin | {f"reference@{MAZE}", f"reference@{HOPPER}", f"evaluate-phase0@{HOPPER}"}
         )
-        assert _dry_run(smoke_repo) == {"generate@phase2", "discriminate@phase2", "finetune@phase2", "summarize"}
+        # one task's own entry reruns that task's stages only
+        ran = dry_run_with(lambda p: p["task"][HOPPER]["guide"].update(n_samples=3))
+        assert ran == {f"{stage}@{HOPPER}" for stage in PHASE0_STAGES}
+        # a phase-2 param reruns phase 2 only (and the summary that lists the phases)
+        ran = dry_run_with(lambda p: p["phases"]["phase2"].update(generate={"tasks": 8}))
+        assert ran == {"generate@phase2", "discriminate@phase2", "finetune@phase2", "summarize"}
         # a generation default reruns generation in every phase; collect, reference and pretrain stay cached
-        params.write_text(original.replace("  cell_spread: 0.4", "  cell_spread: 0.3"))
-        assert _dry_run(smoke_repo) == {"generate@phase1", "generate@phase2"}
+        ran = dry_run_with(lambda p: p["evolution"]["generate"].update(cell_spread=0.3))
+        assert ran == {"generate@phase1", "generate@phase2"}
     finally:
         params.write_text(original)
 
@@ -188,24 +226,35 @@ def _dry_run(root: Path) -> set[str]:
     return {stage for stage in STAGES if f"Running stage '{stage}'" in dry}
 
 
-def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles() -> None:
-    params = load_params(REPO / "params.yaml")
-    with Repo(str(REPO)) as repo:
+def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path) -> None:
+    """On the smoke profile (both families): every stage of stage_names, wired task by task."""
+    for name in ["dvc.yaml", "profiles"]:
+        src = REPO / name
+        (shutil.copytree if src.is_dir() else shutil.copy2)(src, tmp_path / name)
+    apply_profile("smoke", tmp_path / "profiles", tmp_path / "params.yaml")
+    params = load_params(tmp_path / "params.yaml")
+    with Repo.init(str(tmp_path), no_scm=True) as repo:
         graph = repo.index.graph  # edges point from a stage to the stages it depends on
-        upstream = {stage.addressing: {dep.addressing for dep in graph.successors(stage)} for stage in graph.nodes}
+        upstream = {stage.name: {dep.name for dep in graph.successors(stage)} for stage in graph.nodes}
         assert nx.is_directed_acyclic_graph(graph)
-    expected = {"collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0", "summarize", "report"}
-    expected |= {f"{stage}@{name}" for name in params.phase_names for stage in PHASE_STAGES}
-    assert set(upstream) == expected
+    assert set(upstream) == set(stage_names(params)) == set(STAGES)
+    for task in (MAZE, HOPPER):
+        assert upstream[f"collect@{task}"] == set()
+        assert upstream[f"reference@{task}"] == {f"collect@{task}"}
+        assert upstream[f"pretrain@{task}"] == {f"collect@{task}"}
+        assert upstream[f"evaluate-phase0@{task}"] == {f"pretrain@{task}", f"reference@{task}"}
+    assert upstream[f"evaluate-coin-phase0@{MAZE}"] == {f"pretrain@{MAZE}", f"reference@{MAZE}"}
     for phase in params.phases:
         name = phase.name
-        source = "pretrain" if phase.previous == 0 else f"finetune@phase{phase.previous}"
+        source = f"pretrain@{MAZE}" if phase.previous == 0 else f"finetune@phase{phase.previous}"
         assert upstream[f"generate@{name}"] == {source}
         assert upstream[f"discriminate@{name}"] == {f"generate@{name}"}
-        assert upstream[f"finetune@{name}"] == {"collect", source, f"discriminate@{name}"}
-        assert upstream[f"evaluate@{name}"] == {f"finetune@{name}", "reference"}
-        assert upstream[f"evaluate-coin@{name}"] == {f"finetune@{name}", "reference"}
-    assert upstream["summarize"] == {"evaluate-phase0", "evaluate-coin-phase0"} | {
+        assert upstream[f"finetune@{name}"] == {f"collect@{MAZE}", source, f"discriminate@{name}"}
+        assert upstream[f"evaluate@{name}"] == {f"finetune@{name}", f"reference@{MAZE}"}
+        assert upstream[f"evaluate-coin@{name}"] == {f"finetune@{name}", f"reference@{MAZE}"}
+    assert upstream["summarize"] == {
+        f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in ("reference", "evaluate-phase0")
+    } | {f"evaluate-coin-phase0@{MAZE}"} | {
         f"{stage}@{name}" for name in params.phase_names for stage in ("evaluate", "evaluate-coin", "discriminate")
     }
     assert upstream["report"] == {"summarize"}
@@ -220,8 +269,8 @@ def test_dvc_exp_run_alpha_reruns_only_what_alpha_affects(smoke_repo: Path, tmp_
     out = _run(["dvc", "exp", "run", "-n", "alpha50", "-S", "alpha=50"], repo)
     ran = {stage for stage in STAGES if f"Running stage '{stage}'" in out}
     # alpha guides coin tasks in generation and the coin evaluation; everything downstream of them follows
-    assert {"collect", "reference", "pretrain", "evaluate-phase0"}.isdisjoint(ran)
-    assert {"generate@phase1", "generate@phase2", "evaluate-coin-phase0", "evaluate-coin@phase2"} <= ran
+    assert {f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in PHASE0_STAGES}.isdisjoint(ran)
+    assert {"generate@phase1", "generate@phase2", f"evaluate-coin-phase0@{MAZE}", "evaluate-coin@phase2"} <= ran
     shown = json.loads(_run(["dvc", "exp", "show", "--json"], repo))
     assert "alpha50" in json.dumps(shown) and "both_rate" in json.dumps(shown)
 
@@ -231,14 +280,14 @@ def test_bad_params_stop_the_stage_before_work(smoke_repo: Path, tmp_path: Path)
     bad = tmp_path / "params.yaml"
     bad.write_text((smoke_repo / "params.yaml").read_text().replace("maze: umaze", "maze: spiral"))
     out = subprocess.run(
-        [sys.executable, "pipeline/collect.py", "--params", str(bad)],
+        [sys.executable, "pipeline/collect.py", "--task", MAZE, "--params", str(bad)],
         cwd=smoke_repo,
         env=_env(),
         capture_output=True,
         text=True,
     )
     assert out.returncode == 2
-    assert "env.maze" in out.stderr and "spiral" in out.stderr
+    assert f"task.{MAZE}.env.maze" in out.stderr and "spiral" in out.stderr
 
 
 def test_failed_stage_marks_mlflow_run_failed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -26,6 +26,7 @@ from adaptdiffuser.stages.reference import run_reference
 from adaptdiffuser.sweep import _fail_trials_of_dead_workers, apply_best, make_storage, reproduce_command
 
 REPO = Path(__file__).resolve().parents[1]
+TASK = "maze2d-umaze"  # the smoke profile's evolved task, the one a sweep reruns the phases of
 
 
 @pytest.fixture(scope="module")
@@ -35,11 +36,12 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     shutil.copytree(REPO / "profiles", root / "profiles")
     apply_profile("smoke", root / "profiles", root / "params.yaml")
     params = load_params(root / "params.yaml")
+    assert params.evolve == TASK
     old = os.environ.pop("MLFLOW_TRACKING_URI", None)
     try:
-        run_collect(params, root, progress=False)
-        run_reference(params, root, progress=False)
-        run_pretrain(params, root, torch.device("cpu"), progress=False)
+        run_collect(params, TASK, root, progress=False)
+        run_reference(params, TASK, root, progress=False)
+        run_pretrain(params, TASK, root, torch.device("cpu"), progress=False)
     finally:
         if old is not None:
             os.environ["MLFLOW_TRACKING_URI"] = old
@@ -56,7 +58,7 @@ def _sweep(root: Path, *args: str) -> subprocess.CompletedProcess:
 
 def _sweep_runs(root: Path, study: str) -> tuple[object, list]:
     client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")
-    experiment = client.get_experiment_by_name("maze2d-umaze")
+    experiment = client.get_experiment_by_name(TASK)
     runs = client.search_runs([experiment.experiment_id], filter_string=f"tags.sweep = '{study}'")
     (parent,) = [r for r in runs if r.data.tags.get("stage") == "sweep"]
     children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parent.info.run_id]

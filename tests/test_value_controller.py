@@ -5,15 +5,14 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from conftest import maze_sim
 from torch import nn
 
 from adaptdiffuser.checkpoint import make_bundle
-from adaptdiffuser.config import Params
 from adaptdiffuser.data.normalizer import GaussianNormalizer
 from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler
-from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evaluation import Controller, run_episodes
 from adaptdiffuser.families.base import Simulator, Step
 from adaptdiffuser.planning import Planner, ValuePlanningController
@@ -25,7 +24,7 @@ class FallsAfter(Simulator):
     """A real U-Maze simulator whose episode terminates after a per-instance number of steps."""
 
     def __init__(self, steps: int) -> None:
-        self.env = make_env(Params())
+        self.env = maze_sim()
         self.steps = steps
         self.obs_dim, self.act_dim, self.state_dim = 4, 2, 4
         self.episode_steps = 20
@@ -95,7 +94,7 @@ def test_value_controller_executes_the_first_action_of_the_best_plan(tiny_model_
     planner = _planner(tiny_model_params, tiny_diffusion_params)
     guidance = ValueGuidance(PreferFirstAction(), scale=0.0)
     controller = ValuePlanningController(planner, guidance, n_samples=6, seed=11)
-    envs = [make_env(Params()) for _ in range(2)]
+    envs = [maze_sim() for _ in range(2)]
     obs = np.stack([env.reset(np.random.default_rng(i)) for i, env in enumerate(envs)])
     controller.begin(envs, obs, [0, 1])
     actions = controller.act(envs, obs, 0)

@@ -22,9 +22,9 @@ Device = Annotated[
 Progress = Annotated[bool, typer.Option("--progress/--no-progress", help="show progress bars")]
 
 
-def _phase_index(value: str) -> int:
+def _phase_index(value: str | int) -> int:
     """``--phase`` accepts ``2`` or ``phase2`` (the name DVC's foreach passes)."""
-    digits = value.removeprefix("phase")
+    digits = str(value).removeprefix("phase")
     if not digits.isdigit():
         raise typer.BadParameter(f"expected a phase number or name like 2 or phase2, got {value!r}")
     return int(digits)
@@ -49,59 +49,88 @@ def _params(path: Path) -> Params:
     return _guarded(lambda: load_params(path))
 
 
+TaskOption = Annotated[
+    str | None,
+    typer.Option("--task", help="task name (a key of 'task' in params); default: the only task, or 'evolve'"),
+]
+
+
+def _task(p: Params, name: str | None, evolution: bool = False) -> str:
+    """The task a stage runs on: ``--task``, else ``evolve`` for evolution stages, else the only listed task."""
+    if name is not None:
+        return name
+    if evolution and p.evolve is not None:
+        return p.evolve
+    if len(p.tasks) == 1:
+        return p.tasks[0]
+    return _guarded(lambda: _raise(ConfigError(f"tasks: several tasks {list(p.tasks)}; choose one with --task")))
+
+
+def _raise(err: Exception) -> None:
+    raise err
+
+
 @app.command()
-def collect(params: ParamsPath = Path("params.yaml"), progress: Progress = True) -> None:
-    """Collect expert data (D4RL's waypoint recipe) into data/expert.parquet."""
+def collect(params: ParamsPath = Path("params.yaml"), task: TaskOption = None, progress: Progress = True) -> None:
+    """Collect a task's offline dataset (its family's recipe) into data/<task>/dataset.parquet."""
     from adaptdiffuser.stages.collect import run_collect
 
     p = _params(params)
-    out = _guarded(lambda: run_collect(p, Path.cwd(), progress=progress))
+    out = _guarded(lambda: run_collect(p, _task(p, task), Path.cwd(), progress=progress))
     typer.echo(f"wrote {out}")
 
 
 @app.command()
-def reference(params: ParamsPath = Path("params.yaml"), progress: Progress = True) -> None:
-    """Measure R_min (random policy) and R_max (expert) under the evaluation protocol."""
+def reference(params: ParamsPath = Path("params.yaml"), task: TaskOption = None, progress: Progress = True) -> None:
+    """What 0 and 100 of a task's score mean (R_min, R_max) into metrics/tasks/<task>/reference.json."""
     from adaptdiffuser.stages.reference import run_reference
 
     p = _params(params)
-    ref = _guarded(lambda: run_reference(p, Path.cwd(), progress=progress))
-    typer.echo(f"R_min {ref['r_min']:.2f}, R_max {ref['r_max']:.2f} over {ref['n_episodes']} episodes")
+    ref = _guarded(lambda: run_reference(p, _task(p, task), Path.cwd(), progress=progress))
+    typer.echo(f"R_min {ref['r_min']:.2f}, R_max {ref['r_max']:.2f}")
 
 
 @app.command()
-def pretrain(params: ParamsPath = Path("params.yaml"), device: Device = "auto", progress: Progress = True) -> None:
-    """Train the Diffuser baseline (phase 0) on expert data into models/phase0."""
+def pretrain(
+    params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
+    device: Device = "auto",
+    progress: Progress = True,
+) -> None:
+    """Train the Diffuser baseline (phase 0) on a task's dataset into models/<task>/phase0."""
     from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.stages.pretrain import run_pretrain
 
     p = _params(params)
-    out = _guarded(lambda: run_pretrain(p, Path.cwd(), resolve_device(device), progress=progress))
+    out = _guarded(lambda: run_pretrain(p, _task(p, task), Path.cwd(), resolve_device(device), progress=progress))
     typer.echo(f"wrote {out}")
 
 
 @app.command()
 def evaluate(
     params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
     phase: Annotated[int, PhaseOption] = 0,
     device: Device = "auto",
     progress: Progress = True,
 ) -> None:
-    """Evaluate a phase's model under the protocol; write results, pictures and metrics/phases/phase<k>.json."""
+    """Evaluate a phase's model on a task under its protocol; write results, pictures and
+    metrics/tasks/<task>/phase<k>.json."""
     from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.stages.evaluate import run_evaluate
 
     p = _params(params)
-    nav = _guarded(lambda: run_evaluate(p, Path.cwd(), phase, resolve_device(device), progress=progress))
+    name = _task(p, task, evolution=phase > 0)
+    m = _guarded(lambda: run_evaluate(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
     typer.echo(
-        f"phase {phase}: score {nav['score_mean']:.1f} +- {nav['score_stderr']:.1f} "
-        f"(success {nav['success_rate']:.2f}, {nav['n_episodes']} episodes)"
+        f"{name} phase {phase}: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f} ({m['n_episodes']} episodes)"
     )
 
 
 @app.command("evaluate-coin")
 def evaluate_coin(
     params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
     phase: Annotated[int, PhaseOption] = 0,
     device: Device = "auto",
     progress: Progress = True,
@@ -111,7 +140,8 @@ def evaluate_coin(
     from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
 
     p = _params(params)
-    gold = _guarded(lambda: run_evaluate_coin(p, Path.cwd(), phase, resolve_device(device), progress=progress))
+    name = _task(p, task, evolution=True)
+    gold = _guarded(lambda: run_evaluate_coin(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
     typer.echo(
         f"phase {phase}, alpha {p.alpha:g}: coin both-rate {gold['both_rate']:.2f} +- {gold['both_rate_stderr']:.2f} "
         f"(pick {gold['pick_rate']:.2f}, goal {gold['goal_rate']:.2f}, {gold['n_episodes']} cases)"
@@ -120,26 +150,34 @@ def evaluate_coin(
 
 @app.command()
 def generate(
-    phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), device: Device = "auto", progress: Progress = True
+    phase: EvolutionPhase,
+    params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
+    device: Device = "auto",
+    progress: Progress = True,
 ) -> None:
-    """Sample plans for random tasks with phase k-1's model into data/phase<k>/generated.parquet."""
+    """Sample plans for random tasks with phase k-1's model into data/<task>/phase<k>/generated.parquet."""
     from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.stages.generate import run_generate
 
     p = _params(params)
-    stats = _guarded(lambda: run_generate(p, Path.cwd(), phase, resolve_device(device), progress=progress))
+    name = _task(p, task, evolution=True)
+    stats = _guarded(lambda: run_generate(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
     typer.echo(
         f"phase {phase}: generated {stats['generated']} plans (planned reach rate {stats['planned_reach_rate']:.2f})"
     )
 
 
 @app.command()
-def discriminate(phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), progress: Progress = True) -> None:
-    """Track generated plans in the simulator, reject and select into data/phase<k>/selected.parquet."""
+def discriminate(
+    phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), task: TaskOption = None, progress: Progress = True
+) -> None:
+    """Track generated plans in the simulator, reject and select into data/<task>/phase<k>/selected.parquet."""
     from adaptdiffuser.stages.discriminate import run_discriminate
 
     p = _params(params)
-    report = _guarded(lambda: run_discriminate(p, Path.cwd(), phase, progress=progress))
+    name = _task(p, task, evolution=True)
+    report = _guarded(lambda: run_discriminate(p, name, Path.cwd(), phase, progress=progress))
     typer.echo(
         f"phase {phase}: kept {report['kept']} of {report['generated']} "
         f"({report['rejected_tracking']} failed tracking, {report['rejected_reward']} failed the reward rule)"
@@ -148,35 +186,41 @@ def discriminate(phase: EvolutionPhase, params: ParamsPath = Path("params.yaml")
 
 @app.command()
 def finetune(
-    phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), device: Device = "auto", progress: Progress = True
+    phase: EvolutionPhase,
+    params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
+    device: Device = "auto",
+    progress: Progress = True,
 ) -> None:
-    """Fine-tune phase k-1's model on expert plus selected data into models/phase<k>."""
+    """Fine-tune phase k-1's model on expert plus selected data into models/<task>/phase<k>."""
     from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.stages.finetune import run_finetune
 
     p = _params(params)
-    out = _guarded(lambda: run_finetune(p, Path.cwd(), phase, resolve_device(device), progress=progress))
+    name = _task(p, task, evolution=True)
+    out = _guarded(lambda: run_finetune(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
     typer.echo(f"wrote {out}")
 
 
 @app.command()
 def summarize(params: ParamsPath = Path("params.yaml")) -> None:
-    """Merge the metrics of phase 0 and every declared phase into metrics/summary.json."""
+    """Merge every task's phase metrics into metrics/summary.json (task, then phase)."""
     from adaptdiffuser.stages.summarize import run_summarize
 
     p = _params(params)
-    _guarded(lambda: run_summarize(Path.cwd(), [0, *(phase.index for phase in p.phases)]))
+    _guarded(lambda: run_summarize(p, Path.cwd()))
     typer.echo("wrote metrics/summary.json")
 
 
 @app.command()
 def report() -> None:
-    """Score by phase: plots/report/score_by_phase.png and metrics/score_by_phase.csv."""
+    """Score by phase, per task: plots/report/<task>/score_by_phase.png and metrics/report/<task>/score_by_phase.csv."""
     from adaptdiffuser.stages.report import run_report
 
-    rows = _guarded(lambda: run_report(Path.cwd()))
-    for row in rows:
-        typer.echo(f"phase {row['phase']}: score {row['score_mean']:.1f} +- {row['score_stderr']:.1f}")
+    tables = _guarded(lambda: run_report(Path.cwd()))
+    for task, rows in tables.items():
+        for row in rows:
+            typer.echo(f"{task} phase {row['phase']}: score {row['score_mean']:.1f} +- {row['score_stderr']:.1f}")
 
 
 @app.command()

@@ -152,7 +152,7 @@ def run_episodes(
 
 
 def summarize(result: EpisodeBatchResult, r_min: float, r_max: float) -> dict[str, float | int]:
-    """The navigation metrics of ``metrics/summary.json``."""
+    """The score metrics of an evaluation: normalized score mean and standard error over episodes, mean return."""
     returns = np.asarray(result.returns)
     scores = normalized_score(returns, r_min, r_max)
     n = len(returns)
@@ -161,5 +161,4 @@ def summarize(result: EpisodeBatchResult, r_min: float, r_max: float) -> dict[st
         "score_stderr": standard_error(scores),
         "return_mean": float(returns.mean()),
         "n_episodes": int(n),
-        "success_rate": float(np.mean(result.final_success)),
     }

@@ -111,3 +111,19 @@ def save_coin_picture(
         ax.legend(loc="lower right", fontsize=6)
     fig.suptitle(title, fontsize=9)
     _save(fig, path)
+
+
+def save_series_picture(
+    path: str | Path, executed: np.ndarray, plan: np.ndarray | None, labels: list[str], title: str
+) -> None:
+    """One PNG, one panel per label: observation dim ``i`` over the episode, and over the first plan if given."""
+    fig, axes = plt.subplots(len(labels), 1, figsize=(6, 2 * len(labels)), sharex=True, squeeze=False)
+    for dim, (ax, label) in enumerate(zip(axes[:, 0], labels, strict=True)):
+        ax.plot(executed[:, dim], color="tab:blue", lw=1.2, label="executed")
+        if plan is not None:
+            ax.plot(plan[:, dim], color="tab:orange", ls="--", lw=1.2, label="first plan")
+        ax.set_ylabel(label)
+    axes[0, 0].set_title(title, fontsize=9)
+    axes[0, 0].legend(loc="best", fontsize="small")
+    axes[-1, 0].set_xlabel("step")
+    _save(fig, path)

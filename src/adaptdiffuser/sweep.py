@@ -29,7 +29,12 @@ from adaptdiffuser.config import Params, SearchDimension, SweepParams, params_fr
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.tracking import PARENT_RUN_ENV
 
-SHARED_INPUTS = ("data/expert.parquet", "models/phase0", "metrics/reference.json")
+
+def shared_inputs(task: str) -> tuple[Path, ...]:
+    """The cached pipeline outputs of the evolved task that every trial reuses (phase 0 is never retrained)."""
+    from adaptdiffuser.stages.common import dataset_path, model_dir, reference_path
+
+    return (dataset_path(task), model_dir(task, 0), reference_path(task))
 
 
 def objective_value(sweep: SweepParams, navigation: dict, gold_coin: dict) -> float:
@@ -103,16 +108,16 @@ class TrialContext:
     threads: int
 
 
-def check_shared_inputs(root: Path) -> None:
+def check_shared_inputs(root: Path, task: str) -> None:
     """The cached pipeline outputs every trial reuses must exist (a sweep never retrains phase 0)."""
-    for rel in SHARED_INPUTS:
+    for rel in shared_inputs(task):
         if not (root / rel).exists():
             raise FileNotFoundError(f"{rel} not found: run `dvc repro` (at least up to pretrain) before a sweep")
 
 
-def _link_shared_inputs(root: Path, trial_dir: Path) -> None:
-    check_shared_inputs(root)
-    for rel in SHARED_INPUTS:
+def _link_shared_inputs(root: Path, trial_dir: Path, task: str) -> None:
+    check_shared_inputs(root, task)
+    for rel in shared_inputs(task):
         source = (root / rel).resolve()
         target = trial_dir / rel
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -131,17 +136,18 @@ def run_trial(
     from adaptdiffuser.stages.finetune import run_finetune
     from adaptdiffuser.stages.generate import run_generate
 
-    if not params.phases:
-        raise StageError("the sweep needs at least one evolution phase under 'phases'")
-    _link_shared_inputs(root, trial_dir)
+    if not params.phases or params.evolve is None:
+        raise StageError("the sweep needs at least one evolution phase under 'phases' and a task to 'evolve'")
+    task = params.evolve
+    _link_shared_inputs(root, trial_dir, task)
     value = math.nan
     for phase in params.phases:
         k = phase.index
-        run_generate(params, trial_dir, k, device, progress=False)
-        run_discriminate(params, trial_dir, k, progress=False)
-        run_finetune(params, trial_dir, k, device, progress=False)
-        navigation = run_evaluate(params, trial_dir, k, device, progress=False)
-        gold = run_evaluate_coin(params, trial_dir, k, device, progress=False)
+        run_generate(params, task, trial_dir, k, device, progress=False)
+        run_discriminate(params, task, trial_dir, k, progress=False)
+        run_finetune(params, task, trial_dir, k, device, progress=False)
+        navigation = run_evaluate(params, task, trial_dir, k, device, progress=False)
+        gold = run_evaluate_coin(params, task, trial_dir, k, device, progress=False)
         value = objective_value(params.sweep, navigation, gold)
         report(k, value, {"navigation": navigation, "gold_coin": gold})
     return value
@@ -162,7 +168,7 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
     client = MlflowClient(ctx.tracking_uri)
     base = params_from_dict(ctx.raw)
     sweep = base.sweep
-    experiment_id = ensure_experiment(base.task, ctx.root)
+    experiment_id = ensure_experiment(base.evolve or base.tasks[0], ctx.root)
     storage = make_storage(ctx.storage, ctx.root, study_name, sweep.heartbeat_s)
     study = optuna.load_study(study_name=study_name, storage=storage, sampler=_sampler(sweep, worker))
     device = resolve_device(ctx.device)
@@ -242,10 +248,12 @@ def run_sweep(
     trials = trials or sweep.trials
     workers = workers or sweep.workers
     storage = storage or sweep.storage
-    check_shared_inputs(root)
+    if params.evolve is None or not params.phases:
+        raise StageError("the sweep reruns the evolution phases: set 'evolve' to a task and declare 'phases'")
+    check_shared_inputs(root, params.evolve)
     uri = tracking_uri(root)
     client = MlflowClient(uri)
-    experiment_id = ensure_experiment(params.task, root)
+    experiment_id = ensure_experiment(params.evolve, root)
     parent = client.create_run(
         experiment_id,
         run_name=f"sweep-{sweep.study}",

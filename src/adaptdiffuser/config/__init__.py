@@ -4,9 +4,10 @@ Every stage loads the whole file through :func:`load_params`, so a bad value any
 work starts, with a one-line :class:`ConfigError` naming the key (for example ``pretrain.lr: must be a finite
 number, got nan``).
 
-Modules: ``fields`` (value types and range checks), ``sections`` (one model per section), ``phases`` (the phase
-chain), ``sweep`` (sweep settings and search space), ``params`` (the whole file and its cross-section checks),
-``loader`` (YAML in, :class:`ConfigError` out), ``profiles`` (profile switching), ``describe`` (what will run).
+Modules: ``fields`` (value types and range checks), ``sections`` (one model per generic section), ``tasks`` (task
+entries, resolved with their family's model), ``phases`` (the phase chain), ``sweep`` (sweep settings and search
+space), ``params`` (the whole file and its cross-section checks), ``loader`` (YAML in, :class:`ConfigError` out),
+``profiles`` (profile switching), ``describe`` (what will run).
 """
 
 from adaptdiffuser.config.describe import describe, stage_names
@@ -17,36 +18,30 @@ from adaptdiffuser.config.phases import PhaseParams
 from adaptdiffuser.config.profiles import apply_profile, deep_merge
 from adaptdiffuser.config.sections import (
     SELECTION_RULES,
-    CollectParams,
     DiffusionParams,
     DiscriminateParams,
-    EnvParams,
     EvaluateParams,
     EvolutionParams,
-    ExpertParams,
     FinetuneParams,
     GenerateParams,
-    GoldCoinParams,
     ModelParams,
     PlannerParams,
     PretrainParams,
 )
 from adaptdiffuser.config.sweep import SWEEP_OBJECTIVES, SearchDimension, SweepParams, set_dotted
+from adaptdiffuser.config.tasks import GENERIC_SECTIONS, TaskParams
 
 __all__ = [
+    "GENERIC_SECTIONS",
     "SELECTION_RULES",
     "SWEEP_OBJECTIVES",
-    "CollectParams",
     "ConfigError",
     "DiffusionParams",
     "DiscriminateParams",
-    "EnvParams",
     "EvaluateParams",
     "EvolutionParams",
-    "ExpertParams",
     "FinetuneParams",
     "GenerateParams",
-    "GoldCoinParams",
     "ModelParams",
     "Params",
     "PhaseParams",
@@ -54,6 +49,7 @@ __all__ = [
     "PretrainParams",
     "SearchDimension",
     "SweepParams",
+    "TaskParams",
     "apply_profile",
     "check_cross_fields",
     "deep_merge",

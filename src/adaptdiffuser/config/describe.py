@@ -1,13 +1,19 @@
-"""What a params file will run: the task and the pipeline's stages, one line each (for ``adaptdiffuser check``)."""
+"""What a params file will run: the tasks and the pipeline's stages, one line each (for ``adaptdiffuser check``)."""
 
 from __future__ import annotations
 
 from adaptdiffuser.config.params import Params
+from adaptdiffuser.config.tasks import TaskParams
 
 
 def stage_names(params: Params) -> list[str]:
-    """The pipeline's stages in order, as ``dvc.yaml`` names them (``generate@phase1``, ...)."""
-    names = ["collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0"]
+    """The pipeline's stages in order, as ``dvc.yaml`` names them (``pretrain@hopper-medium``, ``generate@phase1``)."""
+    names = []
+    for task in params.tasks:
+        names += [f"collect@{task}", f"reference@{task}", f"pretrain@{task}"]
+        names.append(f"evaluate-phase0@{task}")
+        if task in params.coin_tasks:
+            names.append(f"evaluate-coin-phase0@{task}")
     for phase in params.phases:
         names += [f"{stage}@{phase.name}" for stage in ("generate", "discriminate", "finetune", "evaluate")]
         names.append(f"evaluate-coin@{phase.name}")
@@ -15,36 +21,70 @@ def stage_names(params: Params) -> list[str]:
 
 
 def describe(params: Params) -> list[str]:
-    """Lines describing the task and every stage that will run, with the settings that matter most."""
+    """Lines describing the tasks and every stage that will run, with the settings that matter most."""
     p = params
-    layout = "custom layout" if p.env.layout is not None else f"maze {p.env.maze}"
-    lines = [
-        f"task: {p.task} ({layout}, {p.episode_steps}-step episodes, horizon {p.diffusion.horizon}, "
-        f"{p.diffusion.n_steps} diffusion steps, alpha {p.alpha:g})",
-        f"phases: {len(p.phases)}" + "".join(f", {ph.name} <- phase{ph.previous}" for ph in p.phases),
+    lines = [f"tasks: {', '.join(p.tasks)} (alpha {p.alpha:g})"]
+    for name in p.tasks:
+        t = p.resolve(name)
+        lines.append(
+            f"task {name}: family {t.family}, horizon {t.diffusion.horizon}, {t.diffusion.n_steps} diffusion steps, "
+            f"model dim {t.model.dim} x {t.model.dim_mults}"
+        )
+    lines += [
+        f"evolve: {p.evolve}, phases: {len(p.phases)}"
+        + "".join(f", {ph.name} <- phase{ph.previous}" for ph in p.phases),
         "stages:",
-        f"  collect: {p.collect.steps} expert steps (seed {p.collect.seed})",
-        f"  reference: random and expert returns, {p.evaluate.episodes} episodes each",
-        f"  pretrain: {p.pretrain.steps} steps, batch {p.pretrain.batch_size} x {p.pretrain.grad_accum}, "
-        f"lr {p.pretrain.lr:g}",
-        f"  evaluate-phase0: {p.evaluate.episodes} episodes, {_sampler(p.planner.sampler, p.planner.sampler_steps)}",
-        f"  evaluate-coin-phase0: {p.gold_coin.cases_per_kind} gold-coin cases per kind",
     ]
-    for phase in p.phases:
-        g, d, f = phase.generate, phase.discriminate, phase.finetune
-        rule = {"paper": "paper thresholds", "quantile": f"quantile {d.quantile:g}", "top_k": f"top {d.top_k}"}
-        k = phase.name
+    for name in p.tasks:
+        t = p.resolve(name)
         lines += [
-            f"  generate@{k}: {g.tasks} plans from phase{phase.previous}, {_sampler(g.sampler, g.sampler_steps)}, "
-            f"coin fraction {g.coin_fraction:g}",
-            f"  discriminate@{k}: {rule[d.rule]}"
-            + (f", tracking error <= {d.max_error:g}" if d.tracking else ", no tracking (planned reward)"),
-            f"  finetune@{k}: {max(1, round(f.steps_fraction * p.pretrain.steps))} steps on phases "
-            f"{p.lineage(phase.index)} + expert ({f.expert_weight:g} of each batch)",
-            f"  evaluate@{k}: {p.evaluate.episodes} episodes",
-            f"  evaluate-coin@{k}: {p.gold_coin.cases_per_kind} gold-coin cases per kind",
+            f"  collect@{name}: {_data(t)}",
+            f"  reference@{name}: the score's 0 and 100, {t.evaluate.episodes} episodes",
+            f"  pretrain@{name}: {t.pretrain.steps} steps, batch {t.pretrain.batch_size} x {t.pretrain.grad_accum}, "
+            f"lr {t.pretrain.lr:g}",
         ]
+        if hasattr(t.settings, "value"):
+            lines.append(
+                f"    + value function: {t.settings.value.steps} steps, discount {t.settings.value.discount:g}"
+            )
+        lines.append(f"  evaluate-phase0@{name}: {t.evaluate.episodes} episodes, {_planner(t)}")
+        if name in p.coin_tasks:
+            lines.append(
+                f"  evaluate-coin-phase0@{name}: {t.settings.gold_coin.cases_per_kind} gold-coin cases per kind"
+            )
+    if p.phases:
+        t = p.evolved
+        for phase in p.phases:
+            g, d, f = phase.generate, phase.discriminate, phase.finetune
+            rule = {"paper": "paper thresholds", "quantile": f"quantile {d.quantile:g}", "top_k": f"top {d.top_k}"}
+            k = phase.name
+            lines += [
+                f"  generate@{k}: {g.tasks} plans from {t.name} phase{phase.previous}, "
+                f"{_sampler(g.sampler, g.sampler_steps)}, coin fraction {g.coin_fraction:g}",
+                f"  discriminate@{k}: {rule[d.rule]}"
+                + (f", tracking error <= {d.max_error:g}" if d.tracking else ", no tracking (planned reward)"),
+                f"  finetune@{k}: {max(1, round(f.steps_fraction * t.pretrain.steps))} steps on phases "
+                f"{p.lineage(phase.index)} + expert ({f.expert_weight:g} of each batch)",
+                f"  evaluate@{k}: {t.evaluate.episodes} episodes",
+                f"  evaluate-coin@{k}: {t.settings.gold_coin.cases_per_kind} gold-coin cases per kind",
+            ]
     return [*lines, "  summarize", "  report"]
+
+
+def _data(task: TaskParams) -> str:
+    settings = task.settings
+    if hasattr(settings, "collect"):
+        return f"{settings.collect.steps} expert steps (seed {settings.collect.seed})"
+    b = settings.behaviour
+    return f"{b.algorithm} behaviour policy to score {b.medium_score:g}, {b.dataset_steps} dataset steps per part"
+
+
+def _planner(task: TaskParams) -> str:
+    text = _sampler(task.planner.sampler, task.planner.sampler_steps)
+    guide = getattr(task.settings, "guide", None)
+    if guide is not None:
+        text += f", {guide.n_samples} value-guided samples per step (scale {guide.scale:g})"
+    return text
 
 
 def _sampler(name: str, steps: int) -> str:

@@ -1,4 +1,5 @@
-"""The whole of ``params.yaml``: every section, the phase chain and the checks that span sections."""
+"""The whole of ``params.yaml``: the tasks to run, each task's settings, the generic sections they share, the
+phase chain and the checks that span sections."""
 
 from __future__ import annotations
 
@@ -6,47 +7,60 @@ import dataclasses
 from dataclasses import field
 from typing import Any
 
-from pydantic import ValidationInfo, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 from pydantic.dataclasses import dataclass
 
-from adaptdiffuser.config.errors import ConfigError
-from adaptdiffuser.config.fields import Float
+from adaptdiffuser.config.errors import ConfigError, show
+from adaptdiffuser.config.fields import Float, Str
 from adaptdiffuser.config.phases import PhaseParams, build_phases, check_chain
 from adaptdiffuser.config.sections import (
     SECTION,
-    CollectParams,
     DiffusionParams,
-    EnvParams,
     EvaluateParams,
     EvolutionParams,
-    ExpertParams,
-    GoldCoinParams,
     ModelParams,
     PlannerParams,
     PretrainParams,
 )
 from adaptdiffuser.config.sweep import SweepParams
-from adaptdiffuser.envs.layouts import EPISODE_STEPS
+from adaptdiffuser.config.tasks import GENERIC_SECTIONS, TaskParams, build_task, check_task
 
-PAPER_RULE_MAZES = ("umaze", "medium", "large")
-CUSTOM_EPISODE_STEPS = 300  # what the simulator uses for a custom layout when env.episode_steps is null
+DEFAULT_TASK = "maze2d-umaze"
+
+
+def _default_tasks() -> dict[str, Any]:
+    return {DEFAULT_TASK: {"family": "maze2d"}}
 
 
 @dataclass(frozen=True, config=SECTION)
 class Params:
-    env: EnvParams = field(default_factory=EnvParams)
-    expert: ExpertParams = field(default_factory=ExpertParams)
-    collect: CollectParams = field(default_factory=CollectParams)
     model: ModelParams = field(default_factory=ModelParams)
     diffusion: DiffusionParams = field(default_factory=DiffusionParams)
     pretrain: PretrainParams = field(default_factory=PretrainParams)
     planner: PlannerParams = field(default_factory=PlannerParams)
     evaluate: EvaluateParams = field(default_factory=EvaluateParams)
+    # name -> TaskParams, built from the entries
+    task: dict[str, Any] = Field(default_factory=_default_tasks, validate_default=True)
+    tasks: tuple[Str, ...] = (DEFAULT_TASK,)  # the tasks `dvc repro` runs: collect, reference, pretrain, evaluate
+    coin_tasks: tuple[Str, ...] = (DEFAULT_TASK,)  # those with the unseen gold-coin evaluation
+    evolve: Str | None = DEFAULT_TASK  # the task the evolution phases run on; null = phase 0 only
     evolution: EvolutionParams = field(default_factory=EvolutionParams)
-    gold_coin: GoldCoinParams = field(default_factory=GoldCoinParams)
     alpha: Float = 0.0
     phases: tuple[PhaseParams, ...] = ()  # from a mapping phase<k>: {previous: j, <evolution overrides>}
     sweep: SweepParams = field(default_factory=SweepParams)
+
+    @field_validator("task", mode="before")
+    @classmethod
+    def _build_tasks(cls, value: Any, info: ValidationInfo) -> Any:
+        if value is None:
+            raise ConfigError("task: must be a mapping of task names to their settings, got None")
+        if not isinstance(value, dict):
+            raise ConfigError(f"task: must be a mapping of task names to their settings, got {show(value)}")
+        if any(key not in info.data for key in GENERIC_SECTIONS):  # a generic section is invalid: reported first
+            return {}
+        # resolved tasks (after dataclasses.replace) are resolved again, over the generic sections given now
+        entries = {name: e.entry if isinstance(e, TaskParams) else e for name, e in value.items()}
+        return {name: build_task(name, entry, info.data) for name, entry in entries.items()}
 
     @field_validator("phases", mode="before")
     @classmethod
@@ -63,24 +77,28 @@ class Params:
     def _sweep_defaults(cls, value: Any) -> Any:
         return SweepParams() if value is None else value
 
+    @field_validator("tasks", "coin_tasks", mode="before")
+    @classmethod
+    def _empty_list(cls, value: Any) -> Any:
+        return () if value is None else value
+
     @model_validator(mode="after")
     def _cross_checks(self) -> Params:
         check_cross_fields(self)
         return self
 
-    @property
-    def task(self) -> str:
-        """The task name (one MLflow experiment per task), e.g. ``maze2d-umaze``."""
-        return f"maze2d-{self.env.maze}" if self.env.layout is None else "maze2d-custom"
+    def resolve(self, name: str) -> TaskParams:
+        """The task ``name`` with its overrides applied; :class:`ConfigError` if ``task`` does not define it."""
+        if name not in self.task:
+            raise ConfigError(f"task.{name}: no such task in params (defined: {sorted(self.task)})")
+        return self.task[name]
 
     @property
-    def episode_steps(self) -> int:
-        """The episode length: ``env.episode_steps``, or the protocol's length for the maze when that is null."""
-        if self.env.episode_steps is not None:
-            return self.env.episode_steps
-        if self.env.layout is not None:
-            return CUSTOM_EPISODE_STEPS
-        return EPISODE_STEPS.get(self.env.maze, CUSTOM_EPISODE_STEPS)
+    def evolved(self) -> TaskParams:
+        """The task the evolution phases run on; :class:`ConfigError` when ``evolve`` is null."""
+        if self.evolve is None:
+            raise ConfigError("evolve: is null, so no evolution phase runs; name a task to evolve")
+        return self.resolve(self.evolve)
 
     def section(self, name: str) -> dict[str, Any]:
         """One params section as a plain dict (for logging)."""
@@ -114,30 +132,54 @@ def check_cross_fields(p: Params) -> None:
             f"diffusion.horizon: must be divisible by {factor} (the U-Net halves it {len(p.model.dim_mults) - 1} "
             f"times; see model.dim_mults), got {p.diffusion.horizon}"
         )
-    if p.episode_steps < p.diffusion.horizon:
-        h = p.diffusion.horizon
-        if p.env.episode_steps is not None:
-            raise ConfigError(f"env.episode_steps: {p.episode_steps} is shorter than diffusion.horizon={h}")
-        raise ConfigError(
-            f"env.episode_steps: null means the {p.task} protocol's {p.episode_steps} steps, shorter than "
-            f"diffusion.horizon={h}; set env.episode_steps >= {h}"
-        )
     if p.planner.sampler_steps > p.diffusion.n_steps:
         raise ConfigError(
             f"planner.sampler_steps: {p.planner.sampler_steps} exceeds diffusion.n_steps={p.diffusion.n_steps}"
         )
+    check_task_lists(p)
     check_chain(p.phases)
-    paper_ok = p.env.layout is None and p.env.maze in PAPER_RULE_MAZES
-    for phase in p.phases:
-        where = f"phases.{phase.name}"
-        g, d = phase.generate, phase.discriminate
-        if g.sampler_steps > p.diffusion.n_steps:
+    for name in p.tasks:  # entries not listed in `tasks` are type-checked only (another profile's tasks)
+        check_task(p.task[name], p)
+    if p.phases and p.evolve is not None:
+        n_steps = p.evolved.diffusion.n_steps
+        for phase in p.phases:
+            if phase.generate.sampler_steps > n_steps:
+                raise ConfigError(
+                    f"phases.{phase.name}.generate.sampler_steps: must be in 1..diffusion.n_steps={n_steps} of "
+                    f"{p.evolve}, got {phase.generate.sampler_steps}"
+                )
+
+
+def check_task_lists(p: Params) -> None:
+    """``tasks`` names defined tasks once each; ``coin_tasks`` are exactly the tasks of ``tasks`` whose family has
+    the gold-coin evaluation; ``evolve`` is one of ``tasks``."""
+    if not p.tasks:
+        raise ConfigError("tasks: must list at least one task (a key of 'task')")
+    for key in ("tasks", "coin_tasks"):
+        names = getattr(p, key)
+        for name in names:
+            if name not in p.task:
+                raise ConfigError(f"{key}: {name!r} is not a task defined under 'task' (defined: {sorted(p.task)})")
+        if len(set(names)) != len(names):
+            raise ConfigError(f"{key}: lists a task twice: {list(names)}")
+    needs = {"coin_tasks": [n for n in p.tasks if "coin" in task_stages(p.task[n])]}
+    for key, expected in needs.items():
+        if sorted(getattr(p, key)) != sorted(expected):
             raise ConfigError(
-                f"{where}.generate.sampler_steps: must be in 1..diffusion.n_steps={p.diffusion.n_steps}, "
-                f"got {g.sampler_steps}"
+                f"{key}: must list exactly the tasks of 'tasks' that need this stage: {expected}, "
+                f"got {list(getattr(p, key))}"
             )
-        if d.rule == "paper" and not paper_ok:
-            raise ConfigError(
-                f"{where}.discriminate.rule: the rule 'paper' has thresholds for umaze, medium and large only; "
-                "for a custom layout set evolution.discriminate.rule to quantile or top_k"
-            )
+    if p.evolve is not None and p.evolve not in p.tasks:
+        raise ConfigError(f"evolve: {p.evolve!r} must be one of tasks {list(p.tasks)} (or null)")
+    if p.phases and p.evolve is None:
+        raise ConfigError("evolve: is null but phases are declared; name the task to evolve or set phases: {}")
+    if p.evolve is not None and "evolve" not in task_stages(p.evolved):
+        raise ConfigError(
+            f"evolve: the evolution phases are not implemented for the {p.evolved.family} family yet; "
+            "set evolve: null (phase 0 only) or name a task of a family that has them"
+        )
+
+
+def task_stages(task: TaskParams) -> tuple[str, ...]:
+    """The optional stages a task's family has (``coin``, ``evolve``), declared by its task model."""
+    return tuple(getattr(task.settings, "OPTIONAL_STAGES", ()))

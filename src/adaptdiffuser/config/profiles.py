@@ -11,10 +11,11 @@ from adaptdiffuser.io import atomic_path
 
 
 def deep_merge(base: dict, overlay: dict) -> dict:
-    """``base`` with ``overlay`` merged in, recursively for nested mappings."""
+    """``base`` with ``overlay`` merged in, recursively for nested mappings; an empty mapping in ``overlay``
+    replaces the base one (``phases: {}`` in a profile means no phases)."""
     merged = dict(base)
     for key, value in overlay.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+        if isinstance(value, dict) and value and isinstance(merged.get(key), dict):
             merged[key] = deep_merge(merged[key], value)
         else:
             merged[key] = value

@@ -9,10 +9,9 @@ from __future__ import annotations
 from dataclasses import field
 from typing import Annotated
 
-from pydantic import ConfigDict, model_validator
+from pydantic import ConfigDict
 from pydantic.dataclasses import dataclass
 
-from adaptdiffuser.config.errors import ConfigError
 from adaptdiffuser.config.fields import (
     FRACTION,
     HALF_CELL,
@@ -32,7 +31,6 @@ from adaptdiffuser.config.fields import (
     one_of,
     requires,
 )
-from adaptdiffuser.envs.layouts import MAZES, parse_layout
 
 SECTION = ConfigDict(extra="forbid")
 SELECTION_RULES = ("paper", "quantile", "top_k")
@@ -40,42 +38,6 @@ SELECTION_RULES = ("paper", "quantile", "top_k")
 DimMults = Annotated[
     list[Int], requires(lambda v: len(v) > 0 and all(m > 0 for m in v), "a non-empty list of positive integers")
 ]
-
-
-@dataclass(frozen=True, config=SECTION)
-class EnvParams:
-    maze: Str = "umaze"
-    layout: list[Str] | None = None
-    episode_steps: PositiveInt | None = None
-    goal_radius: PositiveFloat = 0.5
-    reset_pos_noise: NonNegativeFloat = 0.1
-    reset_vel_noise: NonNegativeFloat = 0.1
-    random_goal: Bool = False
-
-    @model_validator(mode="after")
-    def _maze_exists(self) -> EnvParams:
-        if self.layout is not None:
-            try:
-                parse_layout(self.layout)
-            except ValueError as err:
-                raise ConfigError(f"env.layout: {err}") from None
-        elif self.maze not in MAZES:
-            raise ConfigError(f"env.maze: unknown maze {self.maze!r}; choose one of {sorted(MAZES)}")
-        return self
-
-
-@dataclass(frozen=True, config=SECTION)
-class ExpertParams:
-    p_gain: PositiveFloat = 10.0
-    d_gain: Float = 1.0
-    jitter: NonNegativeFloat = 0.2
-    waypoint_radius: PositiveFloat = 0.3
-
-
-@dataclass(frozen=True, config=SECTION)
-class CollectParams:
-    steps: PositiveInt = 200_000
-    seed: Seed = 0
 
 
 @dataclass(frozen=True, config=SECTION)
@@ -125,15 +87,6 @@ class EvaluateParams:
     seed: Seed = 1000
     batch_size: PositiveInt = 50
     pictures: NonNegativeInt = 4
-
-
-@dataclass(frozen=True, config=SECTION)
-class GoldCoinParams:
-    cases_per_kind: PositiveInt = 10
-    seed: Seed = 2000
-    radius: PositiveFloat = 0.5
-    batch_size: PositiveInt = 50
-    pictures: NonNegativeInt = 3
 
 
 @dataclass(frozen=True, config=SECTION)

@@ -3,13 +3,10 @@ episodes where the agent leaves the evaluation goal (Diffuser's ``maze2d_set_ter
 
 from __future__ import annotations
 
-from dataclasses import asdict
-
 import numpy as np
 from tqdm import tqdm
 
-from adaptdiffuser.config import Params
-from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.envs.maze2d import Maze2D
 
 
@@ -48,21 +45,3 @@ def collect_expert_stream(env: Maze2D, steps: int, seed: int, progress: bool = T
         timeout=timeout,
         metadata={},
     )
-
-
-def collect(params: Params, env: Maze2D, progress: bool = True) -> Trajectories:
-    """The ``collect`` stage's dataset, with file metadata."""
-    traj = collect_expert_stream(env, params.collect.steps, params.collect.seed, progress=progress)
-    traj.metadata = make_metadata(
-        env=params.task,
-        obs_dim=env.obs_dim,
-        act_dim=env.act_dim,
-        source="expert",
-        generator={
-            "recipe": "d4rl-waypoint-stream",
-            "collect": asdict(params.collect),
-            "expert": asdict(params.expert),
-            "env": asdict(params.env),
-        },
-    )
-    return traj

@@ -93,3 +93,11 @@ class GaussianNormalizer(Normalizer):
     @classmethod
     def _load(cls, state: dict[str, Any]) -> GaussianNormalizer:
         return cls(np.array(state["mean"]), np.array(state["std"]))
+
+
+def fit_normalizer(kind: str, x: np.ndarray) -> Normalizer:
+    """A normalizer of ``kind`` (``minmax`` or ``gaussian``) fitted to the rows of ``x``."""
+    kinds = {cls.kind: cls for cls in (MinMaxNormalizer, GaussianNormalizer)}
+    if kind not in kinds:
+        raise ValueError(f"unknown normalizer kind {kind!r}; choose one of {sorted(kinds)}")
+    return kinds[kind].fit(x)

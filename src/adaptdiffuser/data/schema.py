@@ -37,14 +37,14 @@ class SchemaError(ValueError):
 def arrow_schema(obs_dim: int, act_dim: int, state_dim: int = 0) -> pa.Schema:
     """The Arrow schema of the required columns for the given dimensions."""
     fields = [
-            ("episode_id", pa.int64()),
-            ("step", pa.int32()),
-            ("observation", pa.list_(pa.float32(), obs_dim)),
-            ("action", pa.list_(pa.float32(), act_dim)),
-            ("reward", pa.float32()),
-            ("terminal", pa.bool_()),
-            ("timeout", pa.bool_()),
-        ]
+        ("episode_id", pa.int64()),
+        ("step", pa.int32()),
+        ("observation", pa.list_(pa.float32(), obs_dim)),
+        ("action", pa.list_(pa.float32(), act_dim)),
+        ("reward", pa.float32()),
+        ("terminal", pa.bool_()),
+        ("timeout", pa.bool_()),
+    ]
     if state_dim > 0:
         fields.append(("sim_state", pa.list_(pa.float64(), state_dim)))
     return pa.schema(fields)

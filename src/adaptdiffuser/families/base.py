@@ -13,9 +13,14 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from adaptdiffuser.data.schema import Trajectories
+    from adaptdiffuser.evaluation import Controller, EpisodeBatchResult
 
 
 @dataclass(frozen=True)
@@ -63,7 +68,9 @@ class Simulator(ABC):
 
 
 class Family(ABC):
-    """A benchmark family: everything the generic pipeline needs to know about its tasks."""
+    """A benchmark family: everything the generic pipeline needs to know about its tasks. ``task`` arguments are
+    :class:`~adaptdiffuser.config.TaskParams` (the family's own settings are ``task.settings``); ``paths`` is a
+    :class:`~adaptdiffuser.families.base.TaskFiles` naming the task's files."""
 
     #: the ``family`` value of a task entry in params.yaml
     name: str
@@ -71,18 +78,70 @@ class Family(ABC):
     #: which plan steps are inpainted (a name of :data:`adaptdiffuser.diffusion.conditions.CONDITIONINGS`)
     conditioning: str
 
-    def uses_value_function(self, task: Any) -> bool:
-        """Whether the task's planner is guided by a learned value function (trained by the value stage)."""
-        return False
+    #: ``minmax`` or ``gaussian``: how trajectories are scaled for the model
+    normalizer_kind: str
+
+    #: whether the planner is guided by a learned value function (trained by the pretrain stage, after the model)
+    uses_value_function: bool = False
 
     @abstractmethod
     def make_simulator(self, task: Any) -> Simulator:
-        """A fresh simulator for ``task`` (the task's resolved params)."""
+        """A fresh simulator for ``task``."""
 
     @abstractmethod
-    def normalizer_kind(self) -> str:
-        """``minmax`` or ``gaussian``: how trajectories are scaled for the model."""
+    def collect(self, task: Any, files: TaskFiles, progress: bool) -> Trajectories:
+        """The task's offline dataset (with file metadata); may write its own outputs (such as behaviour policies)
+        under ``files.collect``."""
+
+    @abstractmethod
+    def reference(self, task: Any, files: TaskFiles, progress: bool) -> dict[str, Any]:
+        """What 0 (``r_min``) and 100 (``r_max``) of the normalized score mean, plus any other reference figures."""
+
+    @abstractmethod
+    def controller(self, task: Any, planner: Any, files: TaskFiles, device: Any) -> Controller:
+        """The controller that turns the planner's plans into actions in the simulator during evaluation."""
+
+    def episode_columns(self, result: EpisodeBatchResult) -> dict[str, list[Any]]:
+        """Family-specific columns of the per-episode results table (beside return, score, length...)."""
+        return {}
+
+    def episode_metrics(self, result: EpisodeBatchResult) -> dict[str, float]:
+        """Family-specific evaluation metrics (beside the score's mean and standard error)."""
+        return {}
+
+    @abstractmethod
+    def save_picture(
+        self, task: Any, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None
+    ) -> None:
+        """One PNG of an evaluation episode: the first plan and the executed states."""
 
     def describe(self, task: Any) -> dict[str, Any]:
         """Facts about the task worth logging next to its runs (env id, dataset kind...)."""
         return {}
+
+
+@dataclass(frozen=True)
+class TaskFiles:
+    """The files of one task under the pipeline's root (paths from :mod:`adaptdiffuser.stages.common`)."""
+
+    root: Path
+    task: str
+
+    @property
+    def dataset(self) -> Path:
+        from adaptdiffuser.stages.common import dataset_path
+
+        return self.root / dataset_path(self.task)
+
+    @property
+    def value(self) -> Path:
+        from adaptdiffuser.stages.common import value_dir
+
+        return self.root / value_dir(self.task)
+
+    @property
+    def collect(self) -> Path:
+        """The collect stage's folder: its summary and the family's own outputs, such as behaviour policies."""
+        from adaptdiffuser.stages.common import collect_dir
+
+        return self.root / collect_dir(self.task)

@@ -1,8 +1,9 @@
-"""The one place families are registered: ``family name -> "module:Class"``, imported only when asked for, so
-the core never imports a family's simulator (or its heavy dependencies) unless a task of that family runs.
+"""The one place families are registered: ``family name -> package``, imported only when asked for, so the core
+never imports a family's simulator (or its heavy dependencies) unless a task of that family runs.
 
-Adding a family = a folder under ``families/`` with a :class:`~adaptdiffuser.families.base.Family` subclass,
-plus one line here.
+A family package has ``params.py`` defining ``TASK_PARAMS`` (the model of its ``task.<name>`` entries, light to
+import) and ``family.py`` defining ``FAMILY`` (its :class:`~adaptdiffuser.families.base.Family` subclass).
+Adding a family = that folder plus one line here.
 """
 
 from __future__ import annotations
@@ -13,17 +14,26 @@ from functools import cache
 from adaptdiffuser.families.base import Family
 
 FAMILIES: dict[str, str] = {
-    "locomotion": "adaptdiffuser.families.locomotion.family:LocomotionFamily",
+    "maze2d": "adaptdiffuser.families.maze2d",
+    "locomotion": "adaptdiffuser.families.locomotion",
 }
+
+
+def _package(name: str) -> str:
+    if name not in FAMILIES:
+        raise KeyError(f"unknown family {name!r}; registered families: {sorted(FAMILIES)}")
+    return FAMILIES[name]
+
+
+def task_params_model(name: str) -> type:
+    """The model of the family's task entries (its ``params.TASK_PARAMS``)."""
+    return importlib.import_module(f"{_package(name)}.params").TASK_PARAMS
 
 
 @cache
 def get_family(name: str) -> Family:
     """The family registered as ``name``; ``KeyError`` naming the known families otherwise."""
-    if name not in FAMILIES:
-        raise KeyError(f"unknown family {name!r}; registered families: {sorted(FAMILIES)}")
-    module_name, class_name = FAMILIES[name].split(":")
-    family = getattr(importlib.import_module(module_name), class_name)()
+    family = importlib.import_module(f"{_package(name)}.family").FAMILY()
     if family.name != name:
         raise TypeError(f"{FAMILIES[name]} declares family {family.name!r}, registered as {name!r}")
     return family

@@ -1,4 +1,4 @@
-"""Stage ``collect``: expert data by D4RL's recipe, as Parquet."""
+"""Stage ``collect``: a task's offline dataset (its family's recipe), as Parquet."""
 
 from __future__ import annotations
 
@@ -7,31 +7,28 @@ from pathlib import Path
 import mlflow
 
 from adaptdiffuser.config import Params
-from adaptdiffuser.data.collect import collect
 from adaptdiffuser.data.schema import write_trajectories
-from adaptdiffuser.envs.factory import make_env
-from adaptdiffuser.stages.common import EXPERT_DATA, file_digest
+from adaptdiffuser.families.base import TaskFiles
+from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.io import write_json
+from adaptdiffuser.stages.common import collect_dir, dataset_path, file_digest
 from adaptdiffuser.tracking import stage_run
 
 
-def run_collect(params: Params, root: Path, progress: bool = True) -> Path:
-    """Stage ``collect``: the expert dataset as Parquet."""
-    with stage_run(
-        params.task,
-        "collect",
-        0,
-        {
-            "env": params.section("env"),
-            "expert": params.section("expert"),
-            "collect": params.section("collect"),
-        },
-        root,
-    ):
-        env = make_env(params)
-        traj = collect(params, env, progress=progress)
-        out = root / EXPERT_DATA
+def run_collect(params: Params, task_name: str, root: Path, progress: bool = True) -> Path:
+    """Stage ``collect@<task>``: write ``data/<task>/dataset.parquet`` and ``models/<task>/collect/collect.json``
+    (beside the family's own outputs there)."""
+    task = params.resolve(task_name)
+    family = get_family(task.family)
+    logged = {"task": task.section("settings"), "family": family.describe(task)}
+    with stage_run(task.name, "collect", 0, logged, root):
+        traj = family.collect(task, TaskFiles(root, task.name), progress)
+        out = root / dataset_path(task.name)
         write_trajectories(out, traj)
-        n_episodes = len(traj.episodes())
-        mlflow.log_metrics({"steps": len(traj), "episodes": n_episodes, "goal_fraction": float(traj.reward.mean())})
-        mlflow.log_param("data.sha256", file_digest(out))
+        stats = {"steps": len(traj), "episodes": len(traj.episodes()), "reward_mean": float(traj.reward.mean())}
+        mlflow.log_metrics(stats)
+        digest = file_digest(out)
+        mlflow.log_param("data.sha256", digest)
+        summary = {"dataset": str(dataset_path(task.name)), "sha256": digest, **stats, **family.describe(task)}
+        write_json(root / collect_dir(task.name) / "collect.json", summary)
     return out

@@ -7,57 +7,81 @@ from pathlib import Path
 
 import torch
 
-EXPERT_DATA = Path("data/expert.parquet")
-REFERENCE = Path("metrics/reference.json")
 SUMMARY = Path("metrics/summary.json")
 
-
-def model_dir(phase: int) -> Path:
-    return Path(f"models/phase{phase}")
-
-
-def results_dir(phase: int) -> Path:
-    return Path(f"results/phase{phase}")
+# Every output of a task lives under its name: data/<task>/, models/<task>/, results/<task>/, plots/<task>/ and
+# metrics/tasks/<task>/ (the summarize stage reads metrics/tasks); the report writes metrics/report/<task>/.
 
 
-def plots_dir(phase: int) -> Path:
-    return Path(f"plots/phase{phase}")
+def dataset_path(task: str) -> Path:
+    """The task's offline training data (expert demonstrations or a behaviour-policy dataset)."""
+    return Path(f"data/{task}/dataset.parquet")
 
 
-PHASE_METRICS = Path("metrics/phases")
-SCORE_TABLE = Path("metrics/score_by_phase.csv")
-REPORT_PLOT = Path("plots/report/score_by_phase.png")
+def reference_path(task: str) -> Path:
+    """What 0 and 100 of the task's normalized score mean (written by its reference stage)."""
+    return Path(f"metrics/tasks/{task}/reference.json")
 
 
-def phase_metrics_path(phase: int) -> Path:
+def model_dir(task: str, phase: int) -> Path:
+    return Path(f"models/{task}/phase{phase}")
+
+
+def value_dir(task: str) -> Path:
+    """The task's learned value function, beside its phase-0 model (written by its pretrain stage)."""
+    return Path(f"models/{task}/phase0/value")
+
+
+def collect_dir(task: str) -> Path:
+    """The collect stage's summary and the family's own collection outputs, such as behaviour policies."""
+    return Path(f"models/{task}/collect")
+
+
+def results_dir(task: str, phase: int) -> Path:
+    return Path(f"results/{task}/phase{phase}")
+
+
+def plots_dir(task: str, phase: int) -> Path:
+    return Path(f"plots/{task}/phase{phase}")
+
+
+def phase_metrics_path(task: str, phase: int) -> Path:
     """Evaluation metrics of a phase (written by its evaluate stage)."""
-    return PHASE_METRICS / f"phase{phase}.json"
+    return Path(f"metrics/tasks/{task}/phase{phase}.json")
 
 
-def discriminator_metrics_path(phase: int) -> Path:
+def discriminator_metrics_path(task: str, phase: int) -> Path:
     """The discriminator report of an evolution phase (written by its discriminate stage)."""
-    return PHASE_METRICS / f"phase{phase}-discriminator.json"
+    return Path(f"metrics/tasks/{task}/phase{phase}-discriminator.json")
 
 
-def coin_metrics_path(phase: int) -> Path:
+def coin_metrics_path(task: str, phase: int) -> Path:
     """Gold-coin metrics of a phase (written by its evaluate-coin stage)."""
-    return PHASE_METRICS / f"phase{phase}-coin.json"
+    return Path(f"metrics/tasks/{task}/phase{phase}-coin.json")
 
 
-def coin_plots_dir(phase: int) -> Path:
-    return Path(f"plots/coin/phase{phase}")
+def coin_plots_dir(task: str, phase: int) -> Path:
+    return Path(f"plots/{task}/coin/phase{phase}")
 
 
-def generated_path(phase: int) -> Path:
-    return Path(f"data/phase{phase}/generated.parquet")
+def generated_path(task: str, phase: int) -> Path:
+    return Path(f"data/{task}/phase{phase}/generated.parquet")
 
 
-def selected_path(phase: int) -> Path:
-    return Path(f"data/phase{phase}/selected.parquet")
+def selected_path(task: str, phase: int) -> Path:
+    return Path(f"data/{task}/phase{phase}/selected.parquet")
 
 
-def discriminator_plot_path(phase: int) -> Path:
-    return Path(f"plots/discriminator/phase{phase}.png")
+def discriminator_plot_path(task: str, phase: int) -> Path:
+    return Path(f"plots/{task}/discriminator/phase{phase}.png")
+
+
+def score_table_path(task: str) -> Path:
+    return Path(f"metrics/report/{task}/score_by_phase.csv")
+
+
+def report_plot_path(task: str) -> Path:
+    return Path(f"plots/report/{task}/score_by_phase.png")
 
 
 def resolve_device(name: str) -> torch.device:

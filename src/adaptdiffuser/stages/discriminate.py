@@ -9,9 +9,9 @@ import mlflow
 
 from adaptdiffuser.config import Params
 from adaptdiffuser.data.schema import read_trajectories, write_trajectories
-from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evolution.discriminator import NothingSelectedError, discriminate
 from adaptdiffuser.evolution.generate import split_task_trajectories, task_trajectories
+from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.io import write_json
 from adaptdiffuser.plots import save_discriminator_histograms
 from adaptdiffuser.stages.common import (
@@ -24,39 +24,40 @@ from adaptdiffuser.stages.common import (
 from adaptdiffuser.tracking import stage_run
 
 
-def run_discriminate(params: Params, root: Path, phase: int, progress: bool = True) -> dict:
-    """Judge ``data/phase<k>/generated.parquet``; write the kept executed trajectories to
-    ``data/phase<k>/selected.parquet``, the report to ``metrics/phases`` and histograms to ``plots/``.
+def run_discriminate(params: Params, task_name: str, root: Path, phase: int, progress: bool = True) -> dict:
+    """Judge ``data/<task>/phase<k>/generated.parquet``; write the kept executed trajectories to
+    ``data/<task>/phase<k>/selected.parquet``, the report to ``metrics/<task>`` and histograms to ``plots/``.
 
     Raises :class:`NothingSelectedError` (and writes no dataset) when nothing is kept."""
+    task = params.resolve(task_name)
     cfg = params.phase(phase).discriminate
-    source = root / generated_path(phase)
+    source = root / generated_path(task.name, phase)
     generated = read_trajectories(source)
     logged = {
         "discriminate": asdict(cfg),
-        "data": {"generated": {"path": str(generated_path(phase)), "sha256": file_digest(source)}},
+        "data": {"generated": {"path": str(generated_path(task.name, phase)), "sha256": file_digest(source)}},
         "planner": {
-            "tracking_p_gain": params.planner.tracking_p_gain,
-            "tracking_d_gain": params.planner.tracking_d_gain,
+            "tracking_p_gain": task.planner.tracking_p_gain,
+            "tracking_d_gain": task.planner.tracking_d_gain,
         },
     }
-    with stage_run(params.task, "discriminate", phase, logged, root):
+    with stage_run(task.name, "discriminate", phase, logged, root):
         states, actions, tasks = split_task_trajectories(generated)
-        env = make_env(params)
+        env = get_family(task.family).make_simulator(task)
         judgement = discriminate(
             env,
             states,
             actions,
             tasks.goals,
             cfg,
-            params.env.maze,
+            task.settings.env.maze,
             coins=tasks.coins,
-            coin_radius=params.gold_coin.radius,
+            coin_radius=task.settings.gold_coin.radius,
             progress=progress,
         )
         report = judgement.report()
         mlflow.log_metrics({f"discriminator.{k}": float(v) for k, v in report.items()})
-        picture = root / discriminator_plot_path(phase)
+        picture = root / discriminator_plot_path(task.name, phase)
         save_discriminator_histograms(
             judgement, cfg.max_error, picture, f"phase {phase}: {report['kept']} of {report['generated']} kept"
         )
@@ -69,9 +70,14 @@ def run_discriminate(params: Params, root: Path, phase: int, progress: bool = Tr
                 "Loosen evolution.discriminate (max_error, rule: quantile) or generate more tasks."
             )
         kept = [judgement.trajectories[i] for i in judgement.kept]
-        generator = {"stage": "discriminate", "phase": phase, "source": str(generated_path(phase)), **asdict(cfg)}
-        selected = task_trajectories(kept, tasks, judgement.kept, params.task, generator)
-        out = root / selected_path(phase)
+        generator = {
+            "stage": "discriminate",
+            "phase": phase,
+            "source": str(generated_path(task.name, phase)),
+            **asdict(cfg),
+        }
+        selected = task_trajectories(kept, tasks, judgement.kept, task.name, generator)
+        out = root / selected_path(task.name, phase)
         write_trajectories(out, selected)
-        write_json(root / discriminator_metrics_path(phase), report)
+        write_json(root / discriminator_metrics_path(task.name, phase), report)
     return report

@@ -12,25 +12,29 @@ from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params
 from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evaluation import normalized_score, run_episodes
+from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.gold_coin import coin_cases, coin_outcome, summarize_coin
 from adaptdiffuser.io import read_json, write_json
 from adaptdiffuser.planning import Planner, PlannerController
 from adaptdiffuser.plots import save_coin_picture
-from adaptdiffuser.stages.common import REFERENCE, coin_metrics_path, coin_plots_dir, model_dir
+from adaptdiffuser.stages.common import coin_metrics_path, coin_plots_dir, model_dir, reference_path
 from adaptdiffuser.tracking import stage_run
 
 
-def run_evaluate_coin(params: Params, root: Path, phase: int, device: torch.device, progress: bool = True) -> dict:
+def run_evaluate_coin(
+    params: Params, task_name: str, root: Path, phase: int, device: torch.device, progress: bool = True
+) -> dict:
     """Plan each fixed coin case once, guided toward its coin with scale ``alpha``, follow the plan for a whole
     episode, and score pick / goal / both rates, plan collisions and the navigation score."""
-    ref = read_json(root / REFERENCE, "reference scores (run the reference stage)")
-    bundle = load_bundle(root / model_dir(phase), device)
-    gc, pl = params.gold_coin, params.planner
-    logged = {"gold_coin": params.section("gold_coin"), "alpha": params.alpha, "planner": params.section("planner")}
-    with stage_run(params.task, "evaluate-coin", phase, logged, root):
-        env = make_env(params)
+    task = params.resolve(task_name)
+    family = get_family(task.family)
+    ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
+    bundle = load_bundle(root / model_dir(task.name, phase), device)
+    gc, pl = task.settings.gold_coin, task.planner
+    logged = {"gold_coin": task.section("gold_coin"), "alpha": params.alpha, "planner": task.section("planner")}
+    with stage_run(task.name, "evaluate-coin", phase, logged, root):
+        env = family.make_simulator(task)
         cases = coin_cases(env, gc.cases_per_kind, np.random.default_rng(gc.seed))
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
         coins = torch.as_tensor(cases.coins, dtype=torch.float32, device=device)
@@ -40,7 +44,7 @@ def run_evaluate_coin(params: Params, root: Path, phase: int, device: torch.devi
 
         controller = PlannerController(planner, gc.seed, pl.replan_every, guidance_for=guidance_for)
         result = run_episodes(
-            lambda: make_env(params),
+            lambda: family.make_simulator(task),
             controller,
             len(cases),
             gc.seed,
@@ -55,9 +59,9 @@ def run_evaluate_coin(params: Params, root: Path, phase: int, device: torch.devi
         ]
         scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
         gold = summarize_coin(outcomes, cases.kinds, scores)
-        write_json(root / coin_metrics_path(phase), {"gold_coin": gold})
+        write_json(root / coin_metrics_path(task.name, phase), {"gold_coin": gold})
         mlflow.log_metrics({f"gold_coin.{k}": float(v) for k, v in gold.items()})
-        pictures = root / coin_plots_dir(phase)
+        pictures = root / coin_plots_dir(task.name, phase)
         goals = np.stack([env.goal_state()] * len(cases))
         picked = list(range(min(gc.pictures, len(cases))))
         if picked:

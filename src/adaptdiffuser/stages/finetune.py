@@ -9,7 +9,7 @@ import mlflow
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle, save_bundle
-from adaptdiffuser.config import Params, PretrainParams
+from adaptdiffuser.config import Params, PretrainParams, TaskParams
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
 from adaptdiffuser.plots import save_loss_curve
@@ -20,42 +20,46 @@ from adaptdiffuser.tracking import stage_run
 from adaptdiffuser.training import fingerprint, train
 
 
-def finetune_config(params: Params, phase: int) -> PretrainParams:
+def finetune_config(params: Params, task: TaskParams, phase: int) -> PretrainParams:
     """Training settings of a fine-tuning phase: pretraining's, for ``finetune.steps_fraction`` of its steps,
     with a seed derived from the phase, and the EMA updated from the first step (it continues phase k-1's)."""
     f = params.phase(phase).finetune
-    steps = max(1, round(f.steps_fraction * params.pretrain.steps))
-    return replace(params.pretrain, steps=steps, seed=derive_seed(f.seed, phase), ema_start=0)
+    steps = max(1, round(f.steps_fraction * task.pretrain.steps))
+    return replace(task.pretrain, steps=steps, seed=derive_seed(f.seed, phase), ema_start=0)
 
 
-def run_finetune(params: Params, root: Path, phase: int, device: torch.device, progress: bool = True) -> Path:
+def run_finetune(
+    params: Params, task_name: str, root: Path, phase: int, device: torch.device, progress: bool = True
+) -> Path:
     """Start from phase k-1's weights, EMA and normalizer; train on the expert data mixed with the data selected
-    in phase k and its ancestors (``finetune.expert_weight`` of each batch is expert); write ``models/phase<k>``."""
+    in phase k and its ancestors (``finetune.expert_weight`` of each batch is expert); write
+    ``models/<task>/phase<k>``."""
+    task = params.resolve(task_name)
     cfg = params.phase(phase)
-    source = model_dir(cfg.previous)
+    source = model_dir(task.name, cfg.previous)
     bundle = load_bundle(root / source, device)
-    expert, expert_info = expert_training_data(params, root)
+    expert, expert_info = expert_training_data(task, root)
     synthetic_info = {}
-    parts = [WindowDataset(expert, params.diffusion.horizon, bundle.normalizer)]
+    parts = [WindowDataset(expert, task.diffusion.horizon, bundle.normalizer)]
     for j in params.lineage(phase):
-        path = root / selected_path(j)
-        parts.append(WindowDataset(read_trajectories(path), params.diffusion.horizon, bundle.normalizer))
-        synthetic_info[f"phase{j}"] = {"path": str(selected_path(j)), "sha256": file_digest(path)}
+        path = root / selected_path(task.name, j)
+        parts.append(WindowDataset(read_trajectories(path), task.diffusion.horizon, bundle.normalizer))
+        synthetic_info[f"phase{j}"] = {"path": str(selected_path(task.name, j)), "sha256": file_digest(path)}
     w = cfg.finetune.expert_weight
     synthetic_share = (1.0 - w) / (len(parts) - 1)
     dataset = MixedWindowDataset(parts, [w] + [synthetic_share] * (len(parts) - 1))
-    train_cfg = finetune_config(params, phase)
+    train_cfg = finetune_config(params, task, phase)
     logged = {
         "finetune": asdict(cfg.finetune),
         "train": asdict(train_cfg),
         "model": {"path": str(source), "phase": cfg.previous},
         "data": {"expert": expert_info, "synthetic": synthetic_info},
     }
-    with stage_run(params.task, "finetune", phase, logged, root):
+    with stage_run(task.name, "finetune", phase, logged, root):
         mlflow.log_metrics(
             {f"windows.{name}": len(p) for name, p in zip(["expert", *synthetic_info], parts, strict=True)}
         )
-        resume = root / "models" / ".resume" / f"phase{phase}.pt"
+        resume = root / "models" / ".resume" / f"{task.name}-phase{phase}.pt"
         resume.parent.mkdir(parents=True, exist_ok=True)
         history = train(
             bundle,
@@ -74,7 +78,7 @@ def run_finetune(params: Params, root: Path, phase: int, device: torch.device, p
             "finetune": asdict(cfg.finetune),
             "data": logged["data"],
         }
-        out = root / model_dir(phase)
+        out = root / model_dir(task.name, phase)
         save_bundle(out, bundle)
         save_loss_curve(history, out / "train_loss.png")
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")

@@ -13,27 +13,30 @@ from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params
 from adaptdiffuser.data.schema import write_trajectories
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.envs.factory import make_env
 from adaptdiffuser.evolution.discriminator import planned_trajectory
 from adaptdiffuser.evolution.generate import generate_plans, task_trajectories
 from adaptdiffuser.evolution.tasks import add_coins, sample_navigation_tasks
+from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.stages.common import generated_path, model_dir
 from adaptdiffuser.tracking import stage_run
 
 
-def run_generate(params: Params, root: Path, phase: int, device: torch.device, progress: bool = True) -> dict:
+def run_generate(
+    params: Params, task_name: str, root: Path, phase: int, device: torch.device, progress: bool = True
+) -> dict:
     """Sample one plan per random (start, goal) task with the model of the phase this one starts from; write
-    the plans (planned states and actions, planned reward) to ``data/phase<k>/generated.parquet``."""
+    the plans (planned states and actions, planned reward) to ``data/<task>/phase<k>/generated.parquet``."""
+    task = params.resolve(task_name)
     cfg = params.phase(phase)
     g = cfg.generate
-    source = model_dir(cfg.previous)
+    source = model_dir(task.name, cfg.previous)
     bundle = load_bundle(root / source, device)
     seed = derive_seed(g.seed, phase)
     logged = {"generate": asdict(g), "alpha": params.alpha, "model": {"path": str(source)}}
-    with stage_run(params.task, "generate", phase, logged, root):
-        env = make_env(params)
+    with stage_run(task.name, "generate", phase, logged, root):
+        env = get_family(task.family).make_simulator(task)
         rng = np.random.default_rng(seed)
         tasks = sample_navigation_tasks(env, g.tasks, rng, g.cell_spread)
         if g.coin_fraction > 0:
@@ -49,10 +52,10 @@ def run_generate(params: Params, root: Path, phase: int, device: torch.device, p
             planned,
             tasks,
             np.arange(len(tasks)),
-            params.task,
+            task.name,
             {"stage": "generate", "phase": phase, "model": str(source), "alpha": params.alpha, **asdict(g)},
         )
-        out = root / generated_path(phase)
+        out = root / generated_path(task.name, phase)
         out.parent.mkdir(parents=True, exist_ok=True)
         write_trajectories(out, traj)
         stats = {

@@ -10,51 +10,58 @@ import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import make_bundle, save_bundle
-from adaptdiffuser.config import Params
-from adaptdiffuser.data.normalizer import MinMaxNormalizer
+from adaptdiffuser.config import Params, TaskParams
+from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.data.schema import Trajectories, read_trajectories
 from adaptdiffuser.data.windows import WindowDataset, joint_array, subset_episodes
+from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.plots import save_loss_curve
-from adaptdiffuser.stages.common import EXPERT_DATA, file_digest, model_dir
+from adaptdiffuser.stages.common import dataset_path, file_digest, model_dir
 from adaptdiffuser.tracking import stage_run
 from adaptdiffuser.training import fingerprint, train
 
 
-def expert_training_data(params: Params, root: Path) -> tuple[Trajectories, dict[str, str | float]]:
-    """The expert episodes the models train on (``pretrain.expert_fraction`` of them, chosen with
+def expert_training_data(task: TaskParams, root: Path) -> tuple[Trajectories, dict[str, str | float]]:
+    """The dataset episodes the models train on (``pretrain.expert_fraction`` of them, chosen with
     ``pretrain.seed``, so every phase sees the same subset) and how to name them in logs."""
-    data_path = root / EXPERT_DATA
+    data_path = root / dataset_path(task.name)
     traj = read_trajectories(data_path)
-    fraction = params.pretrain.expert_fraction
-    subset = subset_episodes(traj, fraction, np.random.default_rng(params.pretrain.seed))
-    return subset, {"path": str(EXPERT_DATA), "sha256": file_digest(data_path), "fraction": fraction}
+    fraction = task.pretrain.expert_fraction
+    subset = subset_episodes(traj, fraction, np.random.default_rng(task.pretrain.seed))
+    return subset, {"path": str(dataset_path(task.name)), "sha256": file_digest(data_path), "fraction": fraction}
 
 
-def run_pretrain(params: Params, root: Path, device: torch.device, progress: bool = True) -> Path:
-    """Stage ``pretrain`` (phase 0, the Diffuser baseline): train on expert data, write ``models/phase0``."""
-    traj, expert = expert_training_data(params, root)
+def run_pretrain(params: Params, task_name: str, root: Path, device: torch.device, progress: bool = True) -> Path:
+    """Stage ``pretrain@<task>`` (phase 0, the Diffuser baseline): train on the task's dataset, write
+    ``models/<task>/phase0``; the family chooses the normalizer and which plan steps are inpainted. Families whose
+    planner is value-guided get their value function trained next, into ``models/<task>/phase0/value``."""
+    task = params.resolve(task_name)
+    family = get_family(task.family)
+    traj, expert = expert_training_data(task, root)
     logged = {
-        "model": params.section("model"),
-        "diffusion": params.section("diffusion"),
-        "pretrain": params.section("pretrain"),
+        "model": task.section("model"),
+        "diffusion": task.section("diffusion"),
+        "pretrain": task.section("pretrain"),
         "data": {"expert": expert},
     }
-    with stage_run(params.task, "pretrain", 0, logged, root):
-        torch.manual_seed(params.pretrain.seed)
-        normalizer = MinMaxNormalizer.fit(joint_array(traj))
+    with stage_run(task.name, "pretrain", 0, logged, root):
+        torch.manual_seed(task.pretrain.seed)
+        normalizer = fit_normalizer(family.normalizer_kind, joint_array(traj))
         meta = traj.metadata
         bundle = make_bundle(
-            params.model,
-            params.diffusion,
+            task.model,
+            task.diffusion,
             meta["obs_dim"],
             meta["act_dim"],
             normalizer,
-            task=params.task,
+            task=task.name,
+            family=task.family,
+            conditioning=family.conditioning,
             phase=0,
-            pretrain=asdict(params.pretrain),
+            pretrain=asdict(task.pretrain),
             data=logged["data"],
         )
-        dataset = WindowDataset(traj, params.diffusion.horizon, normalizer)
+        dataset = WindowDataset(traj, task.diffusion.horizon, normalizer)
         mlflow.log_metrics(
             {
                 "windows": len(dataset),
@@ -62,22 +69,26 @@ def run_pretrain(params: Params, root: Path, device: torch.device, progress: boo
                 "parameters": sum(p.numel() for p in bundle.diffusion.parameters()),
             }
         )
-        resume = root / "models" / ".resume" / "phase0.pt"
+        resume = root / "models" / ".resume" / f"{task.name}-phase0.pt"
         resume.parent.mkdir(parents=True, exist_ok=True)
         history = train(
             bundle,
             dataset,
-            params.pretrain,
+            task.pretrain,
             device,
             resume_path=resume,
             run_id=fingerprint(logged),
             progress=progress,
             on_log=lambda step, loss: mlflow.log_metric("train_loss", loss, step=step),
         )
-        out = root / model_dir(0)
+        out = root / model_dir(task.name, 0)
         save_bundle(out, bundle)
         curve = out / "train_loss.png"
         save_loss_curve(history, curve)
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")  # weights, config and the loss curve
         resume.unlink(missing_ok=True)
+    if family.uses_value_function:
+        from adaptdiffuser.stages.value import run_value
+
+        run_value(params, task.name, root, device, progress=progress)
     return out

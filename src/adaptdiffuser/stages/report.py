@@ -1,4 +1,4 @@
-"""Stage ``report``: score by phase as a PNG with error bars and a CSV table for ``dvc plots show``."""
+"""Stage ``report``: per task, score by phase as a PNG with error bars and a CSV table for ``dvc plots show``."""
 
 from __future__ import annotations
 
@@ -7,37 +7,45 @@ from pathlib import Path
 
 from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.plots import save_score_by_phase
-from adaptdiffuser.stages.common import REPORT_PLOT, SCORE_TABLE, SUMMARY
+from adaptdiffuser.stages.common import SUMMARY, report_plot_path, score_table_path
 
-TABLE_COLUMNS = ("phase", "score_mean", "score_stderr", "success_rate", "return_mean", "n_episodes", "kept")
+TABLE_COLUMNS = ("phase", "score_mean", "score_stderr", "return_mean", "n_episodes", "kept")
 
 
-def score_table(summary: dict) -> list[dict]:
-    """One row per phase, in phase order, from ``metrics/summary.json``."""
+def score_table(task_summary: dict) -> list[dict]:
+    """One row per phase, in phase order, from one task's entry of ``metrics/summary.json``."""
     rows = []
-    for key, entry in summary.items():
-        nav = entry["navigation"]
+    for key, entry in task_summary.items():
+        if not key.startswith("phase_"):
+            continue
         rows.append(
             {
                 "phase": int(key.removeprefix("phase_")),
-                **{k: nav[k] for k in ("score_mean", "score_stderr", "success_rate", "return_mean", "n_episodes")},
+                **{k: entry[k] for k in ("score_mean", "score_stderr", "return_mean", "n_episodes")},
                 "kept": entry.get("discriminator", {}).get("kept", 0),
             }
         )
     return sorted(rows, key=lambda row: row["phase"])
 
 
-def run_report(root: Path) -> list[dict]:
-    """Write ``metrics/score_by_phase.csv`` and ``plots/report/score_by_phase.png`` from the summary."""
-    rows = score_table(read_json(root / SUMMARY, "metrics/summary.json (run the summarize stage)"))
-    with atomic_path(root / SCORE_TABLE) as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=TABLE_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
-    save_score_by_phase(
-        [r["phase"] for r in rows],
-        [r["score_mean"] for r in rows],
-        [r["score_stderr"] for r in rows],
-        root / REPORT_PLOT,
-    )
-    return rows
+def run_report(root: Path) -> dict[str, list[dict]]:
+    """Write ``metrics/report/<task>/score_by_phase.csv`` and ``plots/report/<task>/score_by_phase.png`` for every
+    task of the summary."""
+    summary = read_json(root / SUMMARY, "metrics/summary.json (run the summarize stage)")
+    tables = {}
+    for task, task_summary in summary.items():
+        rows = score_table(task_summary)
+        table = root / score_table_path(task)
+        table.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(table) as tmp, open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=TABLE_COLUMNS)
+            writer.writeheader()
+            writer.writerows(rows)
+        save_score_by_phase(
+            [r["phase"] for r in rows],
+            [r["score_mean"] for r in rows],
+            [r["score_stderr"] for r in rows],
+            root / report_plot_path(task),
+        )
+        tables[task] = rows
+    return tables

@@ -19,72 +19,22 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
 import gymnasium as gym
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 from tqdm.auto import tqdm
 
 from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.families.locomotion.params import BehaviourSettings
 from adaptdiffuser.families.locomotion.reference import normalized_score
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator, env_id_of, parse_task_name
 from adaptdiffuser.io import atomic_path, write_json
 
-Algorithm = Literal["sac", "td3", "ppo"]
 Policy = Callable[[np.ndarray], np.ndarray]
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
 #: the evaluation curve and the policies' summary, beside the ``.zip`` files
 SUMMARY_FILE = "behaviour.json"
-
-
-class BehaviourSettings(BaseModel):
-    """Every knob of behaviour training and dataset recording."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    #: stable-baselines3 algorithm; PPO reached Hopper's medium target fastest in wall-clock on 2 CPU cores
-    #: (~2100 steps/s, 33 after ~100k steps in under a minute; SAC and TD3 had not after 50-60k steps / 13 min)
-    algorithm: Algorithm = "ppo"
-    seed: int = Field(0, ge=0)
-    #: normalized score at which training stops and the ``medium`` policy is saved
-    medium_score: FiniteFloat = 33.0
-    #: normalized score the ``expert`` policy (``medium-expert`` only) trains on to
-    expert_score: FiniteFloat = 90.0
-    #: environment steps budget to reach ``medium_score`` (the policy there is saved, reached or not)
-    max_train_steps: int = Field(300_000, gt=0)
-    #: total environment steps budget to reach ``expert_score``
-    max_expert_steps: int = Field(1_000_000, gt=0)
-    #: uniformly random steps before the off-policy learners start (SAC, TD3)
-    learning_starts: int = Field(5_000, ge=0)
-    #: environment steps between evaluations (PPO rounds each chunk up to whole rollouts of ``ppo_n_steps``)
-    eval_every: int = Field(20_480, gt=0)
-    eval_episodes: int = Field(5, gt=0)
-    eval_seed: int = Field(1_000_000, ge=0)
-    #: steps of each recorded dataset part (D4RL: 1M for medium; medium-expert has 2 parts)
-    dataset_steps: int = Field(1_000_000, gt=0)
-    #: Gaussian action noise of the recorded rollouts, as a fraction of the action half-range
-    rollout_noise: FiniteFloat = Field(0.1, ge=0.0)
-    episode_steps: int = Field(1_000, gt=0)
-    #: torch intra-op threads while training and recording
-    torch_threads: int = Field(2, gt=0)
-    #: hidden layer sizes of the actor and critic networks
-    net_arch: list[Annotated[int, Field(gt=0)]] = Field(default_factory=lambda: [256, 256], min_length=1)
-    learning_rate: FiniteFloat = Field(3e-4, gt=0.0)
-    batch_size: int = Field(256, gt=0)
-    #: PPO rollout length per update
-    ppo_n_steps: int = Field(2_048, gt=1)
-
-    @model_validator(mode="after")
-    def _check_targets(self) -> BehaviourSettings:
-        if self.expert_score < self.medium_score:
-            raise ValueError(f"expert_score ({self.expert_score}) must be >= medium_score ({self.medium_score})")
-        if self.max_expert_steps < self.max_train_steps:
-            raise ValueError(
-                f"max_expert_steps ({self.max_expert_steps}) must be >= max_train_steps ({self.max_train_steps})"
-            )
-        return self
 
 
 # -- evaluation -----------------------------------------------------------------------------------------------

@@ -2,10 +2,25 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
-from adaptdiffuser.families.base import Family
-from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator, parse_task_name
+import numpy as np
+
+from adaptdiffuser.config import TaskParams
+from adaptdiffuser.data.schema import Trajectories, read_trajectories
+from adaptdiffuser.evaluation import Controller, EpisodeBatchResult, standard_error
+from adaptdiffuser.families.base import Family, TaskFiles
+from adaptdiffuser.families.locomotion.params import parse_task_name
+from adaptdiffuser.families.locomotion.reference import REFERENCE_RETURNS, normalized_score, robot_of
+from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator
+from adaptdiffuser.plots import save_series_picture
+
+
+def episode_returns(traj: Trajectories) -> np.ndarray:
+    """The undiscounted return of every episode of a dataset."""
+    _, index = np.unique(traj.episode_id, return_inverse=True)
+    return np.bincount(index, weights=traj.reward.astype(np.float64))
 
 
 class LocomotionFamily(Family):
@@ -14,18 +29,79 @@ class LocomotionFamily(Family):
 
     name = "locomotion"
     conditioning = "start"
+    normalizer_kind = "gaussian"
+    uses_value_function = True
 
-    def normalizer_kind(self) -> str:
-        return "gaussian"
+    def make_simulator(self, task: TaskParams | str) -> LocomotionSimulator:
+        """The simulator of a task (or a task name like ``hopper-medium``)."""
+        name = getattr(task, "name", task)
+        env_id, _ = parse_task_name(name)
+        steps = task.settings.episode_steps if isinstance(task, TaskParams) else 1000
+        return LocomotionSimulator(env_id, episode_steps=steps)
 
-    def uses_value_function(self, task: Any) -> bool:
-        return True
+    def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
+        """Train the behaviour policies (saved under ``models/<task>/collect``) and record the dataset."""
+        from adaptdiffuser.families.locomotion.behaviour import collect_locomotion_dataset
 
-    def make_simulator(self, task: Any) -> LocomotionSimulator:
-        """The simulator of a task named like ``hopper-medium`` (``task`` is the name or has a ``name``)."""
-        env_id, _ = parse_task_name(getattr(task, "name", task))
-        return LocomotionSimulator(env_id)
+        return collect_locomotion_dataset(task.name, files.collect, task.settings.behaviour, progress)
 
-    def describe(self, task: Any) -> dict[str, Any]:
-        env_id, dataset = parse_task_name(getattr(task, "name", task))
-        return {"env_id": env_id, "dataset": dataset}
+    def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
+        """D4RL's random and expert returns (the score's 0 and 100), and beside them, on the evaluation seeds and
+        episode length: our uniform random policy, our medium behaviour policy, and the dataset's episodes."""
+        from adaptdiffuser.families.locomotion.behaviour import (
+            evaluate_policy_returns,
+            load_behaviour_policy,
+            random_policy,
+        )
+
+        env_id, _ = parse_task_name(task.name)
+        r_min, r_max = REFERENCE_RETURNS[robot_of(env_id)]
+        ev, steps = task.evaluate, task.settings.episode_steps
+        sim = self.make_simulator(task)
+        ref: dict[str, Any] = {"r_min": r_min, "r_max": r_max, "n_episodes": ev.episodes, "source": "d4rl"}
+        policies = {"random": random_policy(sim, ev.seed), "behaviour": load_behaviour_policy(files.collect)}
+        for who, policy in policies.items():
+            returns = evaluate_policy_returns(policy, sim, ev.episodes, ev.seed, steps)
+            scores = normalized_score(returns, env_id)
+            ref[f"{who}_return_mean"] = float(returns.mean())
+            ref[f"{who}_score_mean"] = float(np.mean(scores))
+            ref[f"{who}_score_stderr"] = standard_error(scores)
+        data = episode_returns(read_trajectories(files.dataset))
+        data_scores = normalized_score(data, env_id)
+        ref["dataset"] = {
+            "score_mean": float(np.mean(data_scores)),
+            "score_stderr": standard_error(data_scores),
+            "return_mean": float(data.mean()),
+            "n_episodes": int(len(data)),
+        }
+        return ref
+
+    def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
+        """Diffuser's value-guided controller: N plans from the current state, the first action of the best."""
+        from adaptdiffuser.diffusion.guidance import ValueGuidance
+        from adaptdiffuser.planning import ValuePlanningController
+        from adaptdiffuser.value_training import load_value
+
+        value_net, _ = load_value(files.value, device)
+        g = task.settings.guide
+        guidance = ValueGuidance(value_net, g.scale, g.n_guide_steps, g.t_stopgrad, g.scale_grad_by_std)
+        return ValuePlanningController(planner, guidance, g.n_samples, task.evaluate.seed)
+
+    def episode_metrics(self, result: EpisodeBatchResult) -> dict[str, float]:
+        return {
+            "length_mean": float(np.mean(result.lengths)),
+            "terminated_rate": float(np.mean(result.terminated)),
+        }
+
+    def save_picture(
+        self, task: TaskParams, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None
+    ) -> None:
+        """The torso height and angle (the first two observation dims) over the episode, and over the first plan."""
+        save_series_picture(path, executed, plan, ["torso height", "torso angle"], title)
+
+    def describe(self, task: TaskParams) -> dict[str, Any]:
+        env_id, dataset = parse_task_name(task.name)
+        return {"env_id": env_id, "dataset": dataset, "episode_steps": task.settings.episode_steps}
+
+
+FAMILY = LocomotionFamily

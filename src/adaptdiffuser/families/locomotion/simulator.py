@@ -20,24 +20,12 @@ import mujoco
 import numpy as np
 
 from adaptdiffuser.families.base import Simulator, Step
+from adaptdiffuser.families.locomotion.params import DATASET_KINDS, ENV_IDS, parse_task_name
 
-#: family task name prefix -> gymnasium env id
-ENV_IDS: dict[str, str] = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "halfcheetah": "HalfCheetah-v5"}
-#: dataset kinds of a task name (``hopper-medium-replay`` -> ``medium-replay``)
-DATASET_KINDS: tuple[str, ...] = ("medium", "medium-replay", "medium-expert")
+__all__ = ["DATASET_KINDS", "ENV_IDS", "LocomotionSimulator", "env_id_of", "parse_task_name"]
+
 #: envs with a healthy check (healthy reward and termination when unhealthy)
 _HEALTHY_ENVS = ("Hopper-v5", "Walker2d-v5")
-
-
-def parse_task_name(name: str) -> tuple[str, str]:
-    """``hopper-medium-replay`` -> ``("Hopper-v5", "medium-replay")``; ``ValueError`` for an unknown name."""
-    robot, _, kind = name.partition("-")
-    if robot not in ENV_IDS or kind not in DATASET_KINDS:
-        raise ValueError(
-            f"unknown locomotion task {name!r}: expected '<robot>-<dataset>' with robot in {sorted(ENV_IDS)} "
-            f"and dataset in {list(DATASET_KINDS)} (e.g. 'hopper-medium-replay')"
-        )
-    return ENV_IDS[robot], kind
 
 
 def env_id_of(name: str) -> str:

@@ -1,0 +1,126 @@
+"""The Maze2D family as the generic pipeline sees it (registered in ``families/registry.py``)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from adaptdiffuser.config import TaskParams
+from adaptdiffuser.data.collect import collect_expert_stream
+from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.envs.maze2d import Maze2D, resolve_layout
+from adaptdiffuser.evaluation import (
+    Controller,
+    EpisodeBatchResult,
+    ExpertController,
+    RandomController,
+    run_episodes,
+    standard_error,
+)
+from adaptdiffuser.families.base import Family, TaskFiles
+from adaptdiffuser.plots import save_plan_picture
+
+# D4RL's reference returns (raw grid coordinates, their expert), for comparison only.
+D4RL_REFERENCE = {"umaze": (23.85, 161.86), "medium": (13.13, 277.39), "large": (6.7, 273.99)}
+
+
+class Maze2DFamily(Family):
+    """Point-mass navigation: plans inpaint the start and the goal, and a PD controller follows the planned states."""
+
+    name = "maze2d"
+    conditioning = "start_goal"
+    normalizer_kind = "minmax"
+
+    def make_simulator(self, task: TaskParams) -> Maze2D:
+        """A fresh simulator: protocol from ``env``, expert gains from ``expert``, plan-follower gains from
+        ``planner``."""
+        e, x, pl = task.settings.env, task.settings.expert, task.planner
+        return Maze2D(
+            resolve_layout(e.maze, e.layout),
+            name=task.settings.maze_name,
+            episode_steps=e.episode_steps,
+            goal_radius=e.goal_radius,
+            reset_pos_noise=e.reset_pos_noise,
+            reset_vel_noise=e.reset_vel_noise,
+            random_goal=e.random_goal,
+            expert_p_gain=x.p_gain,
+            expert_d_gain=x.d_gain,
+            expert_jitter=x.jitter,
+            expert_waypoint_radius=x.waypoint_radius,
+            tracking_p_gain=pl.tracking_p_gain,
+            tracking_d_gain=pl.tracking_d_gain,
+        )
+
+    def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
+        """D4RL's waypoint expert as one stream of ``collect.steps`` steps, cut into episodes at each new goal."""
+        env = self.make_simulator(task)
+        c = task.settings.collect
+        traj = collect_expert_stream(env, c.steps, c.seed, progress=progress)
+        traj.metadata = make_metadata(
+            env=task.name,
+            obs_dim=env.obs_dim,
+            act_dim=env.act_dim,
+            source="expert",
+            generator={
+                "recipe": "d4rl-waypoint-stream",
+                "collect": asdict(c),
+                "expert": asdict(task.settings.expert),
+                "env": asdict(task.settings.env),
+            },
+        )
+        return traj
+
+    def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
+        """R_min (uniform random actions) and R_max (the waypoint expert) under the protocol, on the evaluation
+        seeds; D4RL's own figures beside them for the standard mazes."""
+        ev = task.evaluate
+
+        def run(controller: Controller, who: str) -> EpisodeBatchResult:
+            return run_episodes(lambda: self.make_simulator(task), controller, ev.episodes, ev.seed, ev.batch_size,
+                                desc=f"reference: {who}", progress=progress)  # fmt: skip
+
+        random, expert = run(RandomController(ev.seed), "random"), run(ExpertController(ev.seed), "expert")
+        ref: dict[str, Any] = {
+            "r_min": float(np.mean(random.returns)),
+            "r_max": float(np.mean(expert.returns)),
+            "r_min_stderr": standard_error(random.returns),
+            "r_max_stderr": standard_error(expert.returns),
+            "n_episodes": ev.episodes,
+            "expert_success_rate": float(np.mean(expert.final_success)),
+        }
+        e = task.settings.env
+        if e.layout is None and e.maze in D4RL_REFERENCE:
+            ref["d4rl_r_min"], ref["d4rl_r_max"] = D4RL_REFERENCE[e.maze]
+        return ref
+
+    def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
+        from adaptdiffuser.planning import PlannerController
+
+        return PlannerController(planner, task.evaluate.seed, task.planner.replan_every)
+
+    def episode_columns(self, result: EpisodeBatchResult) -> dict[str, list[Any]]:
+        return {
+            "start_x": [s[0] for s in result.starts],
+            "start_y": [s[1] for s in result.starts],
+            "goal_x": [g[0] for g in result.goals],
+            "goal_y": [g[1] for g in result.goals],
+            "final_success": result.final_success,
+            "first_goal_step": result.first_goal_step,
+        }
+
+    def episode_metrics(self, result: EpisodeBatchResult) -> dict[str, float]:
+        return {"success_rate": float(np.mean(result.final_success))}
+
+    def save_picture(
+        self, task: TaskParams, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None
+    ) -> None:
+        save_plan_picture(self.make_simulator(task), path, plan, executed, title, goal=goal)
+
+    def describe(self, task: TaskParams) -> dict[str, Any]:
+        return {"maze": task.settings.maze_name, "episode_steps": task.settings.episode_steps}
+
+
+FAMILY = Maze2DFamily
