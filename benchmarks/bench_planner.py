@@ -23,8 +23,9 @@ from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
 from adaptdiffuser.evaluation import run_episodes
+from adaptdiffuser.families.maze2d.execution import PlannerController
 from adaptdiffuser.families.registry import get_family
-from adaptdiffuser.planning import Planner, PlannerController
+from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import model_dir, resolve_device
 
 

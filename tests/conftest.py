@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params
-from adaptdiffuser.data.collect import collect_expert_stream
 from adaptdiffuser.data.schema import Trajectories, make_metadata
-from adaptdiffuser.envs.maze2d import Maze2D
+from adaptdiffuser.families.maze2d.expert import collect_expert_stream
+from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.families.registry import get_family
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -10,14 +11,16 @@ import torch
 from conftest import maze_sim
 
 from adaptdiffuser.checkpoint import make_bundle
-from adaptdiffuser.config import DiffusionParams, DiscriminateParams, ModelParams
+from adaptdiffuser.config import DiffusionParams, DiscriminateParams, ModelParams, Params
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import read_trajectories, write_trajectories
 from adaptdiffuser.data.windows import WindowDataset
 from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.evolution.discriminator import (
-    PAPER_MAZE_RULES,
+    QuantileRule,
+    TopKRule,
     discriminate,
+    generic_selection_rule,
     passes_tracking,
     planned_trajectory,
     select_by_quantile,
@@ -25,7 +28,10 @@ from adaptdiffuser.evolution.discriminator import (
     track_plan,
 )
 from adaptdiffuser.evolution.generate import generate_plans, split_task_trajectories, task_trajectories
-from adaptdiffuser.evolution.tasks import sample_navigation_tasks
+from adaptdiffuser.families.maze2d.execution import PlanFollower
+from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, picks_coin_then_reaches_goal
+from adaptdiffuser.families.maze2d.tasks import sample_navigation_tasks
+from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.planning import Planner
 
 THRESHOLD = 0.3
@@ -50,7 +56,7 @@ def test_a_plan_through_a_wall_is_rejected() -> None:
     vy = np.gradient(y) / 0.01
     plan = np.stack([np.full(64, -1.0), y, np.zeros(64), vy], axis=1)
     assert any(env.in_wall(p[:2]) for p in plan)
-    tracked = track_plan(env, plan)
+    tracked = track_plan(env, plan, PlanFollower)
     assert not passes_tracking(tracked, THRESHOLD)
     assert tracked.max_error > 0.5
     # the executed states never enter the wall: what would be kept is physically real
@@ -60,7 +66,7 @@ def test_a_plan_through_a_wall_is_rejected() -> None:
 def test_a_plan_the_controller_can_follow_is_kept_with_its_real_states_and_actions() -> None:
     env = maze_sim()
     plan = expert_states(128, start_cell=(3, 1), goal_cell=(1, 3))
-    tracked = track_plan(env, plan, goal=np.array([*env.cell_to_xy((1, 3)), 0.0, 0.0]))
+    tracked = track_plan(env, plan, PlanFollower, goal=np.array([*env.cell_to_xy((1, 3)), 0.0, 0.0]))
     assert passes_tracking(tracked, THRESHOLD), tracked.max_error
     # one action per state (the last holds the final planned position) and one reward per state
     assert tracked.observations.shape == (128, 4) and tracked.actions.shape == (128, 2)
@@ -134,7 +140,7 @@ def test_generated_plans_hit_their_tasks_and_kept_data_round_trips(tmp_path: Pat
     np.testing.assert_allclose(plans[:, -1, 2:], tasks.goals, atol=1e-5)
     np.testing.assert_array_equal(plans, generate_plans(planner, tasks, batch_size=2, seed=0, progress=False))
 
-    tracked = [track_plan(env, p[:, 2:], goal=g) for p, g in zip(plans, tasks.goals, strict=True)]
+    tracked = [track_plan(env, p[:, 2:], PlanFollower, goal=g) for p, g in zip(plans, tasks.goals, strict=True)]
     keep = select_top_k(np.array([-t.max_error for t in tracked]), 3)
     traj = task_trajectories([tracked[i] for i in keep], tasks, keep, "maze2d-umaze", {"phase": 1})
     path = tmp_path / "selected.parquet"
@@ -172,7 +178,7 @@ def test_discriminate_rejects_by_tracking_then_selects_by_real_reward() -> None:
     env = maze_sim()
     states, actions, goals = _wall_and_feasible_plans()
     cfg = DiscriminateParams(max_error=THRESHOLD, rule="quantile", quantile=1.0)
-    judgement = discriminate(env, states, actions, goals, cfg, "umaze", progress=False)
+    judgement = discriminate(env, states, actions, goals, cfg, QuantileRule(1.0), PlanFollower, progress=False)
     assert judgement.passed_tracking.tolist() == [True, True, False]
     assert judgement.kept.tolist() == [0]  # the one at the goal sooner scores the higher real return
     report = judgement.report()
@@ -187,7 +193,8 @@ def test_discriminate_rejects_by_tracking_then_selects_by_real_reward() -> None:
         actions,
         goals,
         DiscriminateParams(max_error=THRESHOLD, rule="top_k", top_k=5),
-        "umaze",
+        TopKRule(5),
+        PlanFollower,
         progress=False,
     )
     assert both.kept.tolist() == [0, 1]
@@ -197,7 +204,7 @@ def test_discriminate_without_tracking_takes_plans_at_their_word() -> None:
     env = maze_sim()
     states, actions, goals = _wall_and_feasible_plans()
     cfg = DiscriminateParams(tracking=False, rule="top_k", top_k=3)
-    judgement = discriminate(env, states, actions, goals, cfg, "umaze", progress=False)
+    judgement = discriminate(env, states, actions, goals, cfg, TopKRule(3), PlanFollower, progress=False)
     # nothing is simulated: the wall plan passes and the kept data are the planned states themselves
     assert judgement.passed_tracking.all() and len(judgement.kept) == 3
     np.testing.assert_array_equal(judgement.trajectories[2].observations, states[2])
@@ -210,12 +217,48 @@ def test_discriminate_without_tracking_takes_plans_at_their_word() -> None:
 def test_paper_rule_scores_length_as_the_trajectory_length() -> None:
     env = maze_sim()
     states, actions, goals = _wall_and_feasible_plans()
-    judgement = discriminate(
-        env, states, actions, goals, DiscriminateParams(max_error=THRESHOLD, rule="paper"), "umaze", progress=False
-    )
     rule = PAPER_MAZE_RULES["umaze"]
+    judgement = discriminate(
+        env,
+        states,
+        actions,
+        goals,
+        DiscriminateParams(max_error=THRESHOLD, rule="paper"),
+        rule,
+        PlanFollower,
+        progress=False,
+    )
     # with L = 128, the U-Maze rule R + (300 - L) > 210 asks for more than 38 steps at the goal
     returns = [judgement.trajectories[i].total_reward for i in (0, 1)]
     assert returns[0] > 38 >= returns[1]
     assert [rule.keeps(r, 128) for r in returns] == [True, False]
     assert judgement.kept.tolist() == [0]
+
+
+def test_the_maze_family_gives_the_paper_rule_of_its_maze_and_the_generic_rules_otherwise() -> None:
+    family, task = get_family("maze2d"), Params().resolve("maze2d-umaze")
+    assert family.selection_rule(task, DiscriminateParams(rule="paper")) is PAPER_MAZE_RULES["umaze"]
+    assert family.selection_rule(task, DiscriminateParams(rule="quantile", quantile=0.7)) == QuantileRule(0.7)
+    assert family.selection_rule(task, DiscriminateParams(rule="top_k", top_k=4)) == TopKRule(4)
+    with pytest.raises(ValueError, match="not a generic one"):
+        generic_selection_rule(DiscriminateParams(rule="paper"))
+    # every rule answers positions among the candidates, scored by real return and length
+    returns, lengths = np.array([250.0, 10.0, 100.0]), np.array([128, 128, 201])
+    assert PAPER_MAZE_RULES["umaze"].select(returns, lengths).tolist() == [0, 2]
+    assert TopKRule(2).select(returns, lengths).tolist() == [0, 2]
+    assert QuantileRule(1.0).select(returns, lengths).tolist() == [0]
+
+
+def test_coin_tasks_are_kept_when_they_pick_the_coin_then_reach_the_goal() -> None:
+    env = maze_sim()
+    states, actions, goals = _wall_and_feasible_plans()
+    coin_on_the_way = states[1][40, :2]  # passed by the late plan before it reaches the goal
+    coins = np.stack([[np.nan, np.nan], coin_on_the_way, [5.0, 5.0]])
+    cfg = DiscriminateParams(max_error=THRESHOLD, rule="top_k", top_k=5)
+    check = partial(picks_coin_then_reaches_goal, radius=0.5)
+    judgement = discriminate(env, states, actions, goals, cfg, TopKRule(5), PlanFollower, coins, check, progress=False)
+    assert judgement.coin_tasks.tolist() == [False, True, True]
+    assert judgement.kept.tolist() == [0, 1]  # the wall plan failed tracking, whatever its coin
+    assert judgement.report()["coin_generated"] == 2 and judgement.report()["coin_kept"] == 1
+    with pytest.raises(ValueError, match="coin_check"):
+        discriminate(env, states, actions, goals, cfg, TopKRule(5), PlanFollower, coins, progress=False)

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from adaptdiffuser.envs.maze2d import Maze2D, resolve_layout
-from adaptdiffuser.gold_coin import PAPER_MEDIUM_CASE, coin_cases, coin_kind
+from adaptdiffuser.families.maze2d.gold_coin import PAPER_MEDIUM_CASE, coin_cases, coin_kind
+from adaptdiffuser.families.maze2d.simulator import Maze2D, resolve_layout
 
 
 def _maze(name: str) -> Maze2D:

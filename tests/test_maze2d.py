@@ -10,11 +10,11 @@ from conftest import maze_sim
 from matplotlib.figure import Figure
 
 from adaptdiffuser.config import Params, PlannerParams
-from adaptdiffuser.envs.layouts import EPISODE_STEPS, MAZES, parse_layout
-from adaptdiffuser.envs.maze2d import Maze2D, bfs_distances, resolve_layout, shortest_path
+from adaptdiffuser.families.maze2d.execution import PlanFollower
+from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, parse_layout
 from adaptdiffuser.families.maze2d.params import EnvParams, Maze2DTaskParams
+from adaptdiffuser.families.maze2d.simulator import Maze2D, bfs_distances, resolve_layout, shortest_path
 from adaptdiffuser.families.registry import get_family
-from adaptdiffuser.planning import PlanFollower
 
 CUSTOM = [
     "######",

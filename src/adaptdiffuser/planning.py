@@ -1,8 +1,7 @@
-"""Planning with a trained model: batched goal-conditioned sampling, and the plan-following controller."""
+"""Planning with a trained model: batched sampling of plans, and the value-guided replanning controller (controllers
+that follow a plan's states are a family's own, in its folder)."""
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -10,7 +9,6 @@ import torch
 from adaptdiffuser.checkpoint import ModelBundle
 from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, Objective, ValueGuidance
 from adaptdiffuser.diffusion.samplers import Sampler
-from adaptdiffuser.envs.base import PlanningEnv
 from adaptdiffuser.evaluation import Controller
 from adaptdiffuser.seeding import derive_seed
 
@@ -56,59 +54,6 @@ class Planner:
     def actions(self, x: torch.Tensor) -> np.ndarray:
         """The raw first actions ``[batch, act_dim]`` of normalized trajectories ``x``."""
         return self.normalizer.unnormalize(x[:, 0].double().cpu().numpy())[:, : self.act_dim]
-
-
-class PlanFollower:
-    """Diffuser's Maze2D controller: follow ``plan[t + 1]``; after the plan ends, hold its last position."""
-
-    def __init__(self, env: PlanningEnv, plan_states: np.ndarray) -> None:
-        self.env = env
-        self.plan_states = plan_states
-
-    def waypoint(self, t: int) -> np.ndarray:
-        """The planned state to head for at ``t`` steps after the plan was made."""
-        if t + 1 < len(self.plan_states):
-            return self.plan_states[t + 1]
-        last = self.plan_states[-1].copy()
-        last[2:] = 0.0
-        return last
-
-    def act(self, obs: np.ndarray, t: int) -> np.ndarray:
-        return self.env.tracking_action(obs, self.waypoint(t))
-
-
-class PlannerController(Controller):
-    """Plan at t = 0 (and every ``replan_every`` steps if > 0), follow the plan's states in between;
-    ``guidance_for(episodes)`` gives the guidance of a batch of episodes, if any."""
-
-    def __init__(
-        self,
-        planner: Planner,
-        seed: int,
-        replan_every: int = 0,
-        guidance_for: Callable[[list[int]], Guidance | None] | None = None,
-    ) -> None:
-        self.planner = planner
-        self.seed = seed
-        self.replan_every = replan_every
-        self.guidance_for = guidance_for
-
-    def begin(self, envs, obs, episodes):
-        self.episodes = episodes
-        self.first_plans = None
-
-    def act(self, envs, obs, t):
-        if t == 0 or (self.replan_every and t % self.replan_every == 0):
-            goals = np.stack([env.goal_state() for env in envs])
-            seed = derive_seed(self.seed, self.episodes[0], t)
-            guidance = self.guidance_for(self.episodes) if self.guidance_for else None
-            plans = self.planner.plan(obs, goals, seed=seed, guidance=guidance)
-            obs_part = plans[:, :, self.planner.act_dim :]
-            self.followers = [PlanFollower(env, p) for env, p in zip(envs, obs_part, strict=True)]
-            self.plan_time = t
-            if self.first_plans is None:
-                self.first_plans = obs_part
-        return np.stack([f.act(o, t - self.plan_time) for f, o in zip(self.followers, obs, strict=True)])
 
 
 class ValuePlanningController(Controller):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import matplotlib
 
@@ -11,7 +11,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from adaptdiffuser.envs.base import PlanningEnv  # noqa: E402
 from adaptdiffuser.io import atomic_path  # noqa: E402
 
 if TYPE_CHECKING:
@@ -19,14 +18,15 @@ if TYPE_CHECKING:
 
 
 def save_plan_picture(
-    env: PlanningEnv,
+    env: Any,
     path: str | Path,
     plan: np.ndarray | None,
     executed: np.ndarray | None,
     title: str,
     goal: np.ndarray | None = None,
 ) -> None:
-    """One PNG: the task, the planned states and the executed states."""
+    """One PNG: the task, the planned states and the executed states, drawn by ``env.draw(ax, plan=, executed=,
+    goal=)`` (a simulator that pictures its task)."""
     fig, ax = plt.subplots(figsize=(4, 4))
     env.draw(ax, plan=plan, executed=executed, goal=goal)
     ax.set_title(title, fontsize=9)
@@ -86,7 +86,7 @@ def save_score_by_phase(phases: list[int], means: list[float], stderrs: list[flo
 
 
 def save_coin_picture(
-    env: PlanningEnv,
+    env: Any,
     path: str | Path,
     plain_plan: np.ndarray,
     coin_plan: np.ndarray,
@@ -96,7 +96,7 @@ def save_coin_picture(
     title: str,
 ) -> None:
     """One PNG, two panels like the paper's gold-coin figure: the plan without the coin, and the guided plan
-    toward the coin with its execution."""
+    toward the coin with its execution (``env`` draws the task as for :func:`save_plan_picture`)."""
     from matplotlib.patches import Circle
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(7, 3.6))

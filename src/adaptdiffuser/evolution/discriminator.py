@@ -2,26 +2,31 @@
 simulator, reject plans the dynamics cannot follow, score the executed trajectories and select.
 
 What is kept is the *executed* trajectory (real states and actions), never the raw plan.
+
+The family supplies what depends on its tasks: the simulator (with the goal-task methods ``set_goal_state``,
+``reward`` and ``tracking_error`` beside :class:`~adaptdiffuser.families.base.Simulator`'s), the controller that
+follows a plan's states (a :data:`FollowerFactory`), any :class:`SelectionRule` beyond the generic ``quantile``
+and ``top_k`` ones, and the check of coin tasks (a :data:`CoinCheck`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 from tqdm import tqdm
 
 from adaptdiffuser.config import DiscriminateParams
-from adaptdiffuser.envs.base import PlanningEnv
 from adaptdiffuser.errors import StageError
-from adaptdiffuser.planning import PlanFollower
 
 
 @dataclass
 class TrackedTrajectory:
     """A plan executed by the tracking controller: real observations ``[H, obs]`` and the actions taken in each
-    of them ``[H, act]`` (the last one holds the final planned position, as the plan follower does after a plan
-    ends, so the trajectory fills a training window of length H), the tracking error of each step ``[H - 1]``,
+    of them ``[H, act]`` (the last one is the follower's action past the plan's end, so the trajectory fills a
+    training window of length H), the tracking error of each step ``[H - 1]``,
     the protocol reward of each executed state ``[H]`` (as in the expert data) and the first step at the goal."""
 
     observations: np.ndarray
@@ -43,24 +48,42 @@ class TrackedTrajectory:
         return float(self.rewards.sum())
 
 
-def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | None = None) -> TrackedTrajectory:
-    """Start the simulator at ``planned_states[0]`` and follow the plan with :class:`PlanFollower` (the same
-    controller evaluation uses); the error at step t is :meth:`PlanningEnv.tracking_error` of the executed and planned
+class PlanFollowing(Protocol):
+    """A controller following one plan's states: the planned state it heads for ``t`` steps after the plan was
+    made, and the action it takes from ``obs`` then."""
+
+    def waypoint(self, t: int) -> np.ndarray: ...
+
+    def act(self, obs: np.ndarray, t: int) -> np.ndarray: ...
+
+
+#: ``(env, planned_states) -> follower``: the family's plan-following controller (the one its evaluation uses)
+FollowerFactory = Callable[[Any, np.ndarray], PlanFollowing]
+
+#: ``(trajectory, coin) -> keep?``: whether a coin task's trajectory did what the coin asks
+CoinCheck = Callable[[TrackedTrajectory, np.ndarray], bool]
+
+
+def track_plan(
+    env: Any, planned_states: np.ndarray, follower: FollowerFactory, goal: np.ndarray | None = None
+) -> TrackedTrajectory:
+    """Start the simulator at ``planned_states[0]`` and follow the plan with ``follower(env, planned_states)``
+    (the controller evaluation uses); the error at step t is ``env.tracking_error`` of the executed and planned
     next states. Rewards are measured against ``goal`` when given (the task's goal), else the env's goal."""
     if goal is not None:
         env.set_goal_state(goal)
-    follower = PlanFollower(env, planned_states)
+    controller = follower(env, planned_states)
     obs = env.set_state(planned_states[0])
     observations = [obs]
     actions, errors, rewards = [], [], [env.reward(obs)]
     for t in range(len(planned_states) - 1):
-        action = follower.act(obs, t)
+        action = controller.act(obs, t)
         obs = env.step(action).observation
         observations.append(obs)
         actions.append(action)
-        errors.append(env.tracking_error(obs, follower.waypoint(t)))
+        errors.append(env.tracking_error(obs, controller.waypoint(t)))
         rewards.append(env.reward(obs))
-    actions.append(follower.act(obs, len(planned_states) - 1))  # past the end: hold the final position
+    actions.append(controller.act(obs, len(planned_states) - 1))  # past the plan's end, as the follower acts there
     rewards_arr = np.asarray(rewards, dtype=np.float64)
     hits = np.flatnonzero(rewards_arr > 0)
     return TrackedTrajectory(
@@ -73,7 +96,7 @@ def track_plan(env: PlanningEnv, planned_states: np.ndarray, goal: np.ndarray | 
 
 
 def planned_trajectory(
-    env: PlanningEnv, planned_states: np.ndarray, planned_actions: np.ndarray, goal: np.ndarray | None = None
+    env: Any, planned_states: np.ndarray, planned_actions: np.ndarray, goal: np.ndarray | None = None
 ) -> TrackedTrajectory:
     """A plan taken at its word, without the simulator (the no-discriminator ablation): the planned states and
     actions, zero tracking error, and the protocol reward of each planned state."""
@@ -95,30 +118,6 @@ def passes_tracking(tracked: TrackedTrajectory, threshold: float) -> bool:
     return tracked.max_error <= threshold
 
 
-@dataclass(frozen=True)
-class PaperMazeRule:
-    """The paper's Maze2D reward/length rule (appendix "Metric Values for Reward Discriminator"): keep when
-    ``L > long_length`` or (``L > min_length`` and ``R + (episode_steps - L) > min_score``)."""
-
-    episode_steps: int
-    long_length: int
-    min_length: int
-    min_score: float
-
-    def keeps(self, reward: float, length: int) -> bool:
-        if length > self.long_length:
-            return True
-        return length > self.min_length and reward + (self.episode_steps - length) > self.min_score
-
-
-# The appendix's thresholds per maze (U-Maze / Medium / Large).
-PAPER_MAZE_RULES = {
-    "umaze": PaperMazeRule(300, 200, 50, 210.0),
-    "medium": PaperMazeRule(600, 450, 200, 400.0),
-    "large": PaperMazeRule(800, 650, 270, 400.0),
-}
-
-
 def select_by_quantile(scores: np.ndarray, quantile: float) -> np.ndarray:
     """Indices of scores at or above the ``quantile``; never empty for a non-empty input (the best is kept)."""
     if not 0.0 <= quantile <= 1.0:
@@ -135,6 +134,42 @@ def select_top_k(scores: np.ndarray, k: int) -> np.ndarray:
     if k <= 0:
         raise ValueError(f"k must be positive, got {k}")
     return np.argsort(-np.asarray(scores, dtype=np.float64), kind="stable")[:k]
+
+
+class SelectionRule(Protocol):
+    """Which trajectories to keep, from their real returns ``R`` and lengths ``L`` (numbers of states, that is the
+    model's horizon): positions into those arrays, best first where the rule ranks."""
+
+    def select(self, returns: np.ndarray, lengths: np.ndarray) -> np.ndarray: ...
+
+
+@dataclass(frozen=True)
+class QuantileRule:
+    """Keep the returns at or above the ``quantile`` (never none)."""
+
+    quantile: float
+
+    def select(self, returns: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        return select_by_quantile(returns, self.quantile)
+
+
+@dataclass(frozen=True)
+class TopKRule:
+    """Keep the ``k`` best returns."""
+
+    k: int
+
+    def select(self, returns: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        return select_top_k(returns, self.k)
+
+
+def generic_selection_rule(cfg: DiscriminateParams) -> SelectionRule:
+    """The family-independent rule ``cfg.rule`` names (``quantile`` or ``top_k``); families give the others."""
+    if cfg.rule == "quantile":
+        return QuantileRule(cfg.quantile)
+    if cfg.rule == "top_k":
+        return TopKRule(cfg.top_k)
+    raise ValueError(f"the selection rule {cfg.rule!r} is not a generic one (quantile, top_k); the family gives it")
 
 
 class NothingSelectedError(StageError):
@@ -172,60 +207,46 @@ class Judgement:
         }
 
 
-def select(
-    trajectories: list[TrackedTrajectory], candidates: np.ndarray, cfg: DiscriminateParams, maze: str
-) -> np.ndarray:
-    """Indices (among ``candidates``) kept by the rule in ``cfg``, scored by real reward ``R`` and length ``L``
-    (the number of states, that is the model's horizon)."""
+def select(trajectories: list[TrackedTrajectory], candidates: np.ndarray, rule: SelectionRule) -> np.ndarray:
+    """Indices (among ``candidates``) kept by ``rule``, scored by real reward ``R`` and length ``L`` (the number
+    of states, that is the model's horizon)."""
     candidates = np.asarray(candidates, dtype=np.int64)
     if candidates.size == 0:
         return candidates
     returns = np.array([trajectories[i].total_reward for i in candidates])
-    if cfg.rule == "paper":
-        rule = PAPER_MAZE_RULES[maze]
-        keep = [rule.keeps(r, len(trajectories[i].observations)) for i, r in zip(candidates, returns, strict=True)]
-        return candidates[np.flatnonzero(keep)]
-    if cfg.rule == "quantile":
-        return candidates[select_by_quantile(returns, cfg.quantile)]
-    if cfg.rule == "top_k":
-        return candidates[select_top_k(returns, cfg.top_k)]
-    raise ValueError(f"unknown selection rule {cfg.rule!r}")
-
-
-def picks_coin_then_reaches_goal(trajectory: TrackedTrajectory, coin: np.ndarray, radius: float) -> bool:
-    """The coin-aware reward: some state passes within ``radius`` of ``coin`` and a later (or the same) state
-    is at the goal."""
-    near = np.flatnonzero(np.linalg.norm(trajectory.observations[:, :2] - coin[None, :2], axis=1) <= radius)
-    return bool(len(near)) and bool((trajectory.rewards[near[0] :] > 0).any())
+    lengths = np.array([len(trajectories[i].observations) for i in candidates], dtype=np.int64)
+    return candidates[rule.select(returns, lengths)]
 
 
 def discriminate(
-    env: PlanningEnv,
+    env: Any,
     states: list[np.ndarray],
     actions: list[np.ndarray],
     goals: np.ndarray,
     cfg: DiscriminateParams,
-    maze: str,
+    rule: SelectionRule,
+    follower: FollowerFactory,
     coins: np.ndarray | None = None,
-    coin_radius: float = 0.5,
+    coin_check: CoinCheck | None = None,
     progress: bool = True,
 ) -> Judgement:
-    """Judge generated plans: track each in the simulator (or, with ``cfg.tracking`` off, take it as planned),
-    reject those whose tracking error exceeds ``cfg.max_error``, and select among the rest: navigation tasks by
-    ``cfg.rule``, coin tasks (a non-NaN row of ``coins``) when they pick the coin and then reach the goal."""
+    """Judge generated plans: track each in the simulator with ``follower`` (or, with ``cfg.tracking`` off, take
+    it as planned), reject those whose tracking error exceeds ``cfg.max_error``, and select among the rest:
+    navigation tasks by ``rule`` (the one ``cfg.rule`` names), coin tasks (a non-NaN row of ``coins``) when
+    ``coin_check`` passes."""
+    coin_tasks = np.zeros(len(states), dtype=bool) if coins is None else ~np.isnan(coins).any(axis=1)
+    if coin_tasks.any() and coin_check is None:
+        raise ValueError("coin tasks need a coin_check to be judged")
     judged = []
     for plan_states, plan_actions, goal in tqdm(
         list(zip(states, actions, goals, strict=True)), desc="discriminate", disable=not progress, mininterval=2.0
     ):
         if cfg.tracking:
-            judged.append(track_plan(env, plan_states, goal))
+            judged.append(track_plan(env, plan_states, follower, goal))
         else:
             judged.append(planned_trajectory(env, plan_states, plan_actions, goal))
     passed = np.array([passes_tracking(t, cfg.max_error) for t in judged], dtype=bool)
-    coin_tasks = np.zeros(len(judged), dtype=bool) if coins is None else ~np.isnan(coins).any(axis=1)
-    kept = select(judged, np.flatnonzero(passed & ~coin_tasks), cfg, maze)
-    coin_kept = [
-        i for i in np.flatnonzero(passed & coin_tasks) if picks_coin_then_reaches_goal(judged[i], coins[i], coin_radius)
-    ]
+    kept = select(judged, np.flatnonzero(passed & ~coin_tasks), rule)
+    coin_kept = [i for i in np.flatnonzero(passed & coin_tasks) if coin_check(judged[i], coins[i])]
     kept = np.concatenate([kept, np.asarray(coin_kept, dtype=np.int64)])
     return Judgement(trajectories=judged, passed_tracking=passed, kept=kept, coin_tasks=coin_tasks)

@@ -1,8 +1,10 @@
 """Generation of synthetic data: batched goal-conditioned plans for many tasks, and trajectories for those tasks
-as a dataset in the project's schema, each row saying which task (start, goal) it was made for."""
+as a dataset in the project's schema, each row saying which task (start, goal) it was made for. The tasks
+themselves come from the family, in its folder."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -12,11 +14,31 @@ from tqdm import tqdm
 from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
 from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.evolution.discriminator import TrackedTrajectory
-from adaptdiffuser.evolution.tasks import NavigationTasks
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 
 TASK_COLUMNS = ("task_id", "task_start", "task_goal")
+
+
+@dataclass
+class NavigationTasks:
+    """``n`` start states and goal states (goal velocity zero), the grid cells they were drawn from (empty when
+    read back from a file), and optionally coin positions ``[n, 2]`` (NaN rows for tasks without a coin)."""
+
+    starts: np.ndarray
+    goals: np.ndarray
+    start_cells: np.ndarray
+    goal_cells: np.ndarray
+    coins: np.ndarray | None = None
+
+    def has_coin(self) -> np.ndarray:
+        """Which tasks carry a coin."""
+        if self.coins is None:
+            return np.zeros(len(self), dtype=bool)
+        return ~np.isnan(self.coins).any(axis=1)
+
+    def __len__(self) -> int:
+        return len(self.starts)
 
 
 def generate_plans(

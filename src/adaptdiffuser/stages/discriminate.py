@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import asdict
+from functools import partial
 from pathlib import Path
 
 import mlflow
@@ -11,6 +12,8 @@ from adaptdiffuser.config import Params
 from adaptdiffuser.data.schema import read_trajectories, write_trajectories
 from adaptdiffuser.evolution.discriminator import NothingSelectedError, discriminate
 from adaptdiffuser.evolution.generate import split_task_trajectories, task_trajectories
+from adaptdiffuser.families.maze2d.execution import PlanFollower
+from adaptdiffuser.families.maze2d.selection import picks_coin_then_reaches_goal
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.io import write_json
 from adaptdiffuser.plots import save_discriminator_histograms
@@ -43,16 +46,17 @@ def run_discriminate(params: Params, task_name: str, root: Path, phase: int, pro
     }
     with stage_run(task.name, "discriminate", phase, logged, root):
         states, actions, tasks = split_task_trajectories(generated)
-        env = get_family(task.family).make_simulator(task)
+        family = get_family(task.family)  # the maze family: only it has evolution phases so far
         judgement = discriminate(
-            env,
+            family.make_simulator(task),
             states,
             actions,
             tasks.goals,
             cfg,
-            task.settings.env.maze,
+            family.selection_rule(task, cfg),
+            PlanFollower,
             coins=tasks.coins,
-            coin_radius=task.settings.gold_coin.radius,
+            coin_check=partial(picks_coin_then_reaches_goal, radius=task.settings.gold_coin.radius),
             progress=progress,
         )
         report = judgement.report()

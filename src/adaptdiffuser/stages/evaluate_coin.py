@@ -13,10 +13,11 @@ from adaptdiffuser.config import Params
 from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, run_episodes
+from adaptdiffuser.families.maze2d.execution import PlannerController
+from adaptdiffuser.families.maze2d.gold_coin import coin_cases, coin_outcome, summarize_coin
 from adaptdiffuser.families.registry import get_family
-from adaptdiffuser.gold_coin import coin_cases, coin_outcome, summarize_coin
 from adaptdiffuser.io import read_json, write_json
-from adaptdiffuser.planning import Planner, PlannerController
+from adaptdiffuser.planning import Planner
 from adaptdiffuser.plots import save_coin_picture
 from adaptdiffuser.stages.common import coin_metrics_path, coin_plots_dir, model_dir, reference_path
 from adaptdiffuser.tracking import stage_run

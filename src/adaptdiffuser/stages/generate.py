@@ -15,7 +15,7 @@ from adaptdiffuser.data.schema import write_trajectories
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evolution.discriminator import planned_trajectory
 from adaptdiffuser.evolution.generate import generate_plans, task_trajectories
-from adaptdiffuser.evolution.tasks import add_coins, sample_navigation_tasks
+from adaptdiffuser.families.maze2d.tasks import add_coins, sample_navigation_tasks
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed

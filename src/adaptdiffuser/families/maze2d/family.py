@@ -4,14 +4,12 @@ from __future__ import annotations
 
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from adaptdiffuser.config import TaskParams
-from adaptdiffuser.data.collect import collect_expert_stream
+from adaptdiffuser.config import DiscriminateParams, TaskParams
 from adaptdiffuser.data.schema import Trajectories, make_metadata
-from adaptdiffuser.envs.maze2d import Maze2D, resolve_layout
 from adaptdiffuser.evaluation import (
     Controller,
     EpisodeBatchResult,
@@ -21,7 +19,12 @@ from adaptdiffuser.evaluation import (
     standard_error,
 )
 from adaptdiffuser.families.base import Family, TaskFiles
+from adaptdiffuser.families.maze2d.expert import collect_expert_stream
+from adaptdiffuser.families.maze2d.simulator import Maze2D, resolve_layout
 from adaptdiffuser.plots import save_plan_picture
+
+if TYPE_CHECKING:
+    from adaptdiffuser.evolution.discriminator import SelectionRule
 
 # D4RL's reference returns (raw grid coordinates, their expert), for comparison only.
 D4RL_REFERENCE = {"umaze": (23.85, 161.86), "medium": (13.13, 277.39), "large": (6.7, 273.99)}
@@ -97,9 +100,19 @@ class Maze2DFamily(Family):
         return ref
 
     def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
-        from adaptdiffuser.planning import PlannerController
+        from adaptdiffuser.families.maze2d.execution import PlannerController
 
         return PlannerController(planner, task.evaluate.seed, task.planner.replan_every)
+
+    def selection_rule(self, task: TaskParams, cfg: DiscriminateParams) -> SelectionRule:
+        """The discriminator's rule for the navigation tasks of ``task``'s evolution: under ``rule: paper`` the
+        appendix's thresholds for its maze, else the generic rule ``cfg.rule`` names."""
+        from adaptdiffuser.evolution.discriminator import generic_selection_rule
+        from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES
+
+        if cfg.rule == "paper":
+            return PAPER_MAZE_RULES[task.settings.env.maze]
+        return generic_selection_rule(cfg)
 
     def episode_columns(self, result: EpisodeBatchResult) -> dict[str, list[Any]]:
         return {

@@ -20,7 +20,7 @@ from adaptdiffuser.config.fields import (
     Str,
 )
 from adaptdiffuser.config.sections import SECTION
-from adaptdiffuser.envs.layouts import EPISODE_STEPS, MAZES, parse_layout
+from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, parse_layout
 
 if TYPE_CHECKING:
     from adaptdiffuser.config.params import Params

@@ -1,4 +1,6 @@
-"""Maze2D on gymnasium-robotics PointMaze, with Diffuser's evaluation protocol and D4RL's waypoint expert.
+"""The Maze2D simulator: gymnasium-robotics PointMaze with Diffuser's evaluation protocol, D4RL's waypoint expert
+and the plan follower's tracking action, behind :class:`PlanningEnv` (what the maze's plan following, evolution
+and gold-coin code ask of a simulator beyond :class:`~adaptdiffuser.families.base.Simulator`).
 
 Coordinates are gymnasium-robotics' (centred, y up): cell (row, col) has its centre at
 x = col + 0.5 - width / 2, y = height / 2 - (row + 0.5). Observations are (x, y, vx, vy); actions are forces
@@ -7,13 +9,13 @@ in [-1, 1]^2. The protocol's reward is 1 at every step within ``goal_radius`` (0
 
 from __future__ import annotations
 
+from abc import abstractmethod
 from collections import deque
 
 import numpy as np
 
-from adaptdiffuser.envs.base import PlanningEnv
-from adaptdiffuser.envs.layouts import EPISODE_STEPS, MAZES, Layout, parse_layout
-from adaptdiffuser.families.base import Step
+from adaptdiffuser.families.base import Simulator, Step
+from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, Layout, parse_layout
 
 Cell = tuple[int, int]
 
@@ -51,6 +53,58 @@ def shortest_path(layout: Layout, start: Cell, goal: Cell) -> list[Cell]:
         neighbours = [(r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)]
         path.append(min((n for n in neighbours if n in dist), key=lambda n: dist[n]))
     return path
+
+
+class PlanningEnv(Simulator):
+    """A simulator with a goal task: reset, step, the protocol's reward, an expert, a tracking controller, a picture.
+
+    Observations and actions are flat float vectors. One instance simulates one episode at a time; batch work
+    (evaluation, tracking) holds one instance per parallel episode.
+    """
+
+    name: str
+    obs_dim: int
+    act_dim: int
+    episode_steps: int
+
+    @abstractmethod
+    def reward(self, obs: np.ndarray) -> float:
+        """The evaluation protocol's reward for being at ``obs``."""
+
+    @abstractmethod
+    def goal_state(self) -> np.ndarray:
+        """The state the planner is conditioned to end in for the current task."""
+
+    @abstractmethod
+    def set_goal_state(self, goal: np.ndarray) -> None:
+        """Make ``goal`` (a state, as :meth:`goal_state` returns) the current task's goal."""
+
+    def tracking_error(self, executed: np.ndarray, planned: np.ndarray) -> float:
+        """How far an executed state is from the planned one (full-state L2 unless an env says otherwise)."""
+        return float(np.linalg.norm(np.asarray(executed) - np.asarray(planned)))
+
+    @abstractmethod
+    def seed_expert(self, seed: int) -> None:
+        """Seed the expert's own randomness (for reproducible reference returns and data)."""
+
+    @abstractmethod
+    def expert_action(self, obs: np.ndarray) -> np.ndarray:
+        """The scripted expert's action towards the current goal."""
+
+    @abstractmethod
+    def tracking_action(self, obs: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """The action that moves from ``obs`` towards the planned next state ``target``."""
+
+    @abstractmethod
+    def draw(
+        self,
+        ax,
+        plan: np.ndarray | None = None,
+        executed: np.ndarray | None = None,
+        goal: np.ndarray | None = None,
+    ) -> None:
+        """Draw the task (optionally a planned and an executed state sequence, and the episode's goal state
+        if it differs from the current one) on a matplotlib axis."""
 
 
 class Maze2D(PlanningEnv):

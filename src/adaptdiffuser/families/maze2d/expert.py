@@ -7,7 +7,7 @@ import numpy as np
 from tqdm import tqdm
 
 from adaptdiffuser.data.schema import Trajectories
-from adaptdiffuser.envs.maze2d import Maze2D
+from adaptdiffuser.families.maze2d.simulator import Maze2D
 
 
 def collect_expert_stream(env: Maze2D, steps: int, seed: int, progress: bool = True) -> Trajectories:

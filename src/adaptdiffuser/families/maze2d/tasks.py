@@ -1,34 +1,14 @@
-"""Synthetic tasks: random start and goal cells, with random positions inside the start cell, and optionally a
-gold coin to pick up on the way (in a third random cell)."""
+"""Synthetic Maze2D tasks for the evolution's generation: random start and goal cells, with random positions inside
+the start cell, and optionally a gold coin to pick up on the way (in a third random cell)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
-from adaptdiffuser.envs.maze2d import Maze2D
-
-
-@dataclass
-class NavigationTasks:
-    """``n`` start states and goal states (goal velocity zero), the cells they were drawn from, and optionally
-    coin positions ``[n, 2]`` (NaN rows for tasks without a coin)."""
-
-    starts: np.ndarray
-    goals: np.ndarray
-    start_cells: np.ndarray
-    goal_cells: np.ndarray
-    coins: np.ndarray | None = None
-
-    def has_coin(self) -> np.ndarray:
-        """Which tasks carry a coin."""
-        if self.coins is None:
-            return np.zeros(len(self), dtype=bool)
-        return ~np.isnan(self.coins).any(axis=1)
-
-    def __len__(self) -> int:
-        return len(self.starts)
+from adaptdiffuser.evolution.generate import NavigationTasks
+from adaptdiffuser.families.maze2d.simulator import Maze2D
 
 
 def sample_navigation_tasks(env: Maze2D, n: int, rng: np.random.Generator, cell_spread: float = 0.4) -> NavigationTasks:

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from adaptdiffuser.envs.maze2d import Cell, Maze2D, bfs_distances, shortest_path
 from adaptdiffuser.evaluation import standard_error
+from adaptdiffuser.families.maze2d.simulator import Cell, Maze2D, bfs_distances, shortest_path
 
 #: where the coin lies relative to the shortest start -> goal path
 COIN_KINDS = ("on_path", "off_path", "behind_start")

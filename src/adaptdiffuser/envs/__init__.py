@@ -1,1 +1,0 @@
-"""Environments the planner runs in; each plugs in through :class:`adaptdiffuser.envs.base.PlanningEnv`."""
