@@ -105,6 +105,7 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
     assert table[0].startswith("phase,score_mean,score_stderr")
     assert [r.split(",")[0] for r in table[1:]] == ["0", "1", "2"]
     assert (smoke_repo / f"plots/report/{MAZE}/score_by_phase.png").read_bytes()[:4] == b"\x89PNG"
+    assert f"{MAZE}/score_by_phase.csv" in _run(["dvc", "plots", "show", "--json"], smoke_repo)
 
     ref = json.loads((smoke_repo / f"metrics/tasks/{MAZE}/reference.json").read_text())
     assert ref["r_max"] > ref["r_min"]
