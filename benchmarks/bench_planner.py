@@ -87,11 +87,11 @@ def main() -> None:
         (f"DDIM strided ({params.planner.sampler_steps} steps)", DDIMSampler(params.planner.sampler_steps)),
     ]:
         planner = Planner(bundle, sampler, device)
-        planner.plan(start_state, goal, seed=0)
+        planner.plan(start_state, goal, [0])
         _sync(device)
         start = time.perf_counter()
         for r in range(args.repeats):
-            planner.plan(start_state, goal, seed=r)
+            planner.plan(start_state, goal, [r])
         _sync(device)
         print(f"plan latency, {name}: {1000 * (time.perf_counter() - start) / args.repeats:.1f} ms per decision")
 
@@ -99,11 +99,11 @@ def main() -> None:
     planner = Planner(bundle, DDIMSampler(params.planner.sampler_steps), device)
     coin = torch.as_tensor(env.cell_to_xy(env.layout.free_cells[0])[None], dtype=torch.float32, device=device)
     guidance = planner.guidance(CoinObjective(coin), max(all_params.alpha, 1.0))
-    planner.plan(start_state, goal, seed=0, guidance=guidance)
+    planner.plan(start_state, goal, [0], guidance=guidance)
     _sync(device)
     start = time.perf_counter()
     for r in range(args.repeats):
-        planner.plan(start_state, goal, seed=r, guidance=guidance)
+        planner.plan(start_state, goal, [r], guidance=guidance)
     _sync(device)
     elapsed_ms = 1000 * (time.perf_counter() - start) / args.repeats
     print(f"plan latency, DDIM strided with coin guidance: {elapsed_ms:.1f} ms per decision")

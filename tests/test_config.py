@@ -128,6 +128,8 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert hopper.family == "locomotion" and hopper.settings.episode_steps == 40
         assert hopper.diffusion.horizon == 16 and hopper.model.dim_mults == [1, 2]
         assert hopper.pretrain == params.pretrain  # not overridden: the top-level section
+        for name in ("walker2d-medium-replay", "halfcheetah-medium-expert"):  # stages run by tests, not DVC
+            assert params.resolve(name).family == "locomotion" and name not in params.tasks
     if profile == "quick-locomotion":
         # `phases: {}` and `coin_tasks: []` replace the quick profile's (an empty mapping is not merged)
         assert params.tasks == ("hopper-medium",) and params.coin_tasks == () and params.evolve is None
@@ -447,10 +449,9 @@ def test_describe_lists_the_task_and_the_stages_dvc_runs() -> None:
     assert stages[:5] == [
         f"{s}@{UMAZE}" for s in ("collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0")
     ]
-    assert stages[5:10] == [
-        f"{s}@phase1" for s in ("generate", "discriminate", "finetune", "evaluate", "evaluate-coin")
-    ]
-    assert stages[-2:] == ["summarize", "report"] and len(stages) == 5 + 5 * 2 + 2
+    phase_stages = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
+    assert stages[5:12] == [f"{s}@phase1" for s in phase_stages]
+    assert stages[-2:] == ["summarize", "report"] and len(stages) == 5 + 7 * 2 + 2
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
     items = {"${tasks}": params.tasks, "${coin_tasks}": params.coin_tasks, "${phases}": params.phase_names}
     expanded = {f"{name}@{k}" for name, spec in dvc.items() if "foreach" in spec for k in items[spec["foreach"]]} | {

@@ -23,12 +23,16 @@ from adaptdiffuser.stages.common import (
     discriminator_plot_path,
     generated_path,
     model_dir,
+    phase_metrics_path,
+    results_dir,
     selected_path,
 )
 from adaptdiffuser.stages.discriminate import run_discriminate
+from adaptdiffuser.stages.evaluate import run_evaluate
 from adaptdiffuser.stages.finetune import finetune_config, run_finetune
 from adaptdiffuser.stages.generate import run_generate
 from adaptdiffuser.stages.pretrain import run_pretrain
+from adaptdiffuser.stages.reference import run_reference
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = torch.device("cpu")
@@ -95,7 +99,7 @@ def test_finetuned_model_loads_keeps_the_normalizer_and_plans(phase1_root: tuple
     planner = Planner(phase1, DDIMSampler(task.planner.sampler_steps), CPU)
     starts = np.array([[1.0, 1.0, 0.0, 0.0], [3.0, 1.0, 0.1, -0.1]])
     goals = np.array([[1.0, 3.0, 0.0, 0.0], [1.0, 3.0, 0.0, 0.0]])
-    plan = planner.plan(starts, goals, seed=0)
+    plan = planner.plan(starts, goals, [0, 1])
     assert plan.shape == (2, task.diffusion.horizon, 6) and np.isfinite(plan).all()
     np.testing.assert_allclose(plan[:, 0, 2:], starts, atol=1e-4)
     np.testing.assert_allclose(plan[:, -1, 2:], goals, atol=1e-4)
@@ -109,3 +113,47 @@ def test_nothing_selected_stops_plainly_and_writes_no_dataset(phase1_root: tuple
     with pytest.raises(NothingSelectedError, match="kept none of 16 generated trajectories"):
         run_discriminate(strict, TASK, root, 1, progress=False)
     assert (root / selected_path(TASK, 1)).read_bytes() == before  # the earlier output is untouched
+
+
+def _with_finetune(params: Params, **finetune: object) -> Params:
+    phase = params.phase(1)
+    changed = dataclasses.replace(phase, finetune=dataclasses.replace(phase.finetune, **finetune))
+    return dataclasses.replace(params, phases=(changed, *params.phases[1:]))
+
+
+def test_control_differs_from_its_phase_only_in_the_data(phase1_root: tuple[Path, Params], tmp_path: Path) -> None:
+    """The control trains phase 0's model with phase 1's steps, seed and settings on expert data only: with every
+    batch expert in the phase too, the two models are the same weights."""
+    root, params = phase1_root
+    out = run_finetune(params, TASK, root, 1, CPU, progress=False, control=True)
+    assert out == root / model_dir(TASK, 1, control=True) == root / f"models/{TASK}/phase1-control"
+    control = load_bundle(out)
+    assert control.config["control"] is True and control.config["data"]["synthetic"] == {}
+    evolved = load_bundle(root / model_dir(TASK, 1))
+    pairs = zip(control.diffusion.parameters(), evolved.diffusion.parameters(), strict=True)
+    assert not all(torch.equal(a, b) for a, b in pairs)  # (smoke fine-tuning is shorter than one EMA update)
+
+    assert params.resolve(TASK).pretrain.batch_size == 4  # 0.99 x 4 rounds to 4 expert windows per batch
+    expert_only = _with_finetune(params, expert_weight=0.99)
+    copy = tmp_path / "project"
+    (copy / "models" / TASK).mkdir(parents=True)
+    (copy / "data").symlink_to(root / "data")
+    (copy / model_dir(TASK, 0)).symlink_to(root / model_dir(TASK, 0))
+    a = load_bundle(run_finetune(expert_only, TASK, copy, 1, CPU, progress=False))
+    b = load_bundle(run_finetune(expert_only, TASK, copy, 1, CPU, progress=False, control=True))
+    assert all(torch.equal(x, y) for x, y in zip(a.diffusion.parameters(), b.diffusion.parameters(), strict=True))
+
+
+def test_control_evaluation_reports_the_paired_gain(phase1_root: tuple[Path, Params]) -> None:
+    root, params = phase1_root
+    if not (root / model_dir(TASK, 1, control=True)).exists():
+        run_finetune(params, TASK, root, 1, CPU, progress=False, control=True)
+    run_reference(params, TASK, root, progress=False)
+    with pytest.raises(FileNotFoundError, match="phase 1's evaluation, needed for the gain"):
+        run_evaluate(params, TASK, root, 1, CPU, progress=False, control=True)
+    evolved = run_evaluate(params, TASK, root, 1, CPU, progress=False)
+    control = run_evaluate(params, TASK, root, 1, CPU, progress=False, control=True)
+    assert control["gain_mean"] == pytest.approx(evolved["score_mean"] - control["score_mean"])
+    assert control["gain_n_episodes"] == evolved["n_episodes"] and control["gain_stderr"] >= 0.0
+    assert json.loads((root / phase_metrics_path(TASK, 1, control=True)).read_text()) == control
+    assert (root / results_dir(TASK, 1, control=True) / "episodes.parquet").exists()

@@ -17,6 +17,7 @@ from adaptdiffuser.data.windows import WindowDataset, joint_array
 from adaptdiffuser.diffusion.guidance import CoinObjective, ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
 from adaptdiffuser.planning import Planner
+from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.training import train
 
 CPU = torch.device("cpu")
@@ -24,6 +25,7 @@ CPU = torch.device("cpu")
 STARTS = np.tile([[1.0, 1.0, 0.0, 0.0]], (6, 1))
 GOALS = np.tile([[-1.0, 1.0, 0.0, 0.0]], (6, 1))
 COIN = torch.tensor([[1.0, -1.0]]).repeat(6, 1)
+SEEDS = [derive_seed(3, i) for i in range(6)]  # one per plan: the same start and goal, six different noises
 
 
 @pytest.fixture(scope="module")
@@ -50,22 +52,22 @@ def _closest_approach(plans: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("sampler", [DDPMSampler(), DDIMSampler(8)], ids=["ddpm", "ddim"])
 def test_alpha_zero_is_exactly_unguided(trained: ModelBundle, sampler) -> None:
     planner = Planner(trained, sampler, CPU)
-    plain = planner.plan(STARTS, GOALS, seed=3)
-    zero = planner.plan(STARTS, GOALS, seed=3, guidance=planner.guidance(CoinObjective(COIN), 0.0))
+    plain = planner.plan(STARTS, GOALS, SEEDS)
+    zero = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), 0.0))
     np.testing.assert_array_equal(plain, zero)
 
 
 @pytest.mark.parametrize("sampler", [DDPMSampler(), DDIMSampler(8)], ids=["ddpm", "ddim"])
 def test_guidance_moves_plans_toward_the_coin_and_keeps_inpainting(trained: ModelBundle, sampler) -> None:
     planner = Planner(trained, sampler, CPU)
-    plain = planner.plan(STARTS, GOALS, seed=3)
-    guided = planner.plan(STARTS, GOALS, seed=3, guidance=planner.guidance(CoinObjective(COIN), 10.0))
+    plain = planner.plan(STARTS, GOALS, SEEDS)
+    guided = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), 10.0))
     assert _closest_approach(guided).mean() < _closest_approach(plain).mean() - 0.1
     # the start and goal stay pinned by inpainting
     np.testing.assert_allclose(guided[:, 0, 2:], STARTS, atol=1e-5)
     np.testing.assert_allclose(guided[:, -1, 2:], GOALS, atol=1e-5)
     # and a negative alpha pushes the other way
-    away = planner.plan(STARTS, GOALS, seed=3, guidance=planner.guidance(CoinObjective(COIN), -10.0))
+    away = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), -10.0))
     assert _closest_approach(away).mean() > _closest_approach(guided).mean()
 
 
@@ -96,11 +98,11 @@ Y = 3  # the y position: act_dim 2 + observation index 1
 @pytest.mark.parametrize("sampler", [DDPMSampler(), DDIMSampler(8)], ids=["ddpm", "ddim"])
 def test_value_guidance_raises_the_value_and_keeps_inpainting(trained: ModelBundle, sampler) -> None:
     planner = Planner(trained, sampler, CPU)
-    plain = planner.plan(STARTS, GOALS, seed=3)
+    plain = planner.plan(STARTS, GOALS, SEEDS)
     up = ValueGuidance(MeanOfDim(Y), scale=10.0, n_guide_steps=2, t_stopgrad=0)
-    guided = planner.plan(STARTS, GOALS, seed=3, guidance=up)
+    guided = planner.plan(STARTS, GOALS, SEEDS, guidance=up)
     assert guided[:, :, Y].mean() > plain[:, :, Y].mean() + 0.2
-    down = planner.plan(STARTS, GOALS, seed=3, guidance=ValueGuidance(MeanOfDim(Y), -10.0, 2, t_stopgrad=0))
+    down = planner.plan(STARTS, GOALS, SEEDS, guidance=ValueGuidance(MeanOfDim(Y), -10.0, 2, t_stopgrad=0))
     assert down[:, :, Y].mean() < plain[:, :, Y].mean() - 0.2
     for plans in (guided, down):
         np.testing.assert_allclose(plans[:, 0, 2:], STARTS, atol=1e-5)
@@ -113,4 +115,4 @@ def test_value_guidance_raises_the_value_and_keeps_inpainting(trained: ModelBund
     # guidance stopped at every step (t_stopgrad = n_steps) is exactly unguided sampling
     n_steps = trained.ema.n_steps
     off = ValueGuidance(MeanOfDim(Y), scale=10.0, n_guide_steps=2, t_stopgrad=n_steps)
-    np.testing.assert_array_equal(planner.plan(STARTS, GOALS, seed=3, guidance=off), plain)
+    np.testing.assert_array_equal(planner.plan(STARTS, GOALS, SEEDS, guidance=off), plain)

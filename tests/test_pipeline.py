@@ -24,7 +24,7 @@ from adaptdiffuser.tracking import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
 PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
-PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "evaluate-coin")
+PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
 MAZE, HOPPER = "maze2d-umaze", "hopper-medium"
 PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
 STAGES = [
@@ -97,12 +97,19 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
         assert set(disc) == {"generated", "kept", "kept_fraction", "tracking_error_mean"}
         assert disc["generated"] == 16 and 1 <= disc["kept"] <= 16
         assert disc["kept_fraction"] == disc["kept"] / 16 and disc["tracking_error_mean"] > 0
+        entry, control = maze[f"phase_{k}"], maze[f"phase_{k}"]["control"]
+        assert control["n_episodes"] == 3 and "gain_mean" not in control
+        # the gain is paired over the same episodes: its mean is the difference of the two means
+        assert entry["gain_mean"] == pytest.approx(entry["score_mean"] - control["score_mean"])
+        assert entry["gain_stderr"] >= 0.0
+        control_model = load_bundle(smoke_repo / f"models/{MAZE}/phase{k}-control")
+        assert control_model.config["control"] is True and control_model.config["data"]["synthetic"] == {}
         assert load_bundle(smoke_repo / f"models/{MAZE}/phase{k}").config["previous"] == k - 1
         selected = read_trajectories(smoke_repo / f"data/{MAZE}/phase{k}/selected.parquet")
         assert len(selected.episodes()) == disc["kept"]
         assert (smoke_repo / f"plots/{MAZE}/discriminator/phase{k}.png").read_bytes()[:4] == b"\x89PNG"
     table = (smoke_repo / f"metrics/report/{MAZE}/score_by_phase.csv").read_text().splitlines()
-    assert table[0].startswith("phase,score_mean,score_stderr")
+    assert table[0].startswith("phase,score_mean,score_stderr,control_score_mean,control_score_stderr,gain_mean")
     assert [r.split(",")[0] for r in table[1:]] == ["0", "1", "2"]
     assert (smoke_repo / f"plots/report/{MAZE}/score_by_phase.png").read_bytes()[:4] == b"\x89PNG"
     assert f"{MAZE}/score_by_phase.csv" in _run(["dvc", "plots", "show", "--json"], smoke_repo)
@@ -178,6 +185,14 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
         assert len(finetune.data.params[f"data.{name}.sha256"]) == 64
     assert finetune.data.params["model.path"] == f"models/{MAZE}/phase1"
     assert [m.step for m in client.get_metric_history(finetune.info.run_id, "train_loss")] == [5]
+    # the control of phase 2: the same start model, steps and seed, expert data only
+    control = by_stage["control", "2"]
+    assert control.data.params["model.path"] == f"models/{MAZE}/phase1"
+    assert "data.synthetic.phase1.sha256" not in control.data.params
+    for key in ("train.steps", "train.seed", "data.expert.sha256"):
+        assert control.data.params[key] == finetune.data.params[key]
+    assert [m.step for m in client.get_metric_history(control.info.run_id, "train_loss")] == [5]
+    assert {"gain_mean", "gain_stderr", "score_mean"} <= set(by_stage["evaluate-control", "2"].data.metrics)
     assert by_stage["discriminate", "1"].data.metrics["discriminator.generated"] == 16
     # the locomotion task has its own experiment, with the value function's training beside pretraining
     hopper = client.get_experiment_by_name(HOPPER)
@@ -201,6 +216,7 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
         return _dry_run(smoke_repo)
 
     evaluations = {f"evaluate-phase0@{MAZE}", "evaluate@phase1", "evaluate@phase2"}
+    evaluations |= {"evaluate-control@phase1", "evaluate-control@phase2"}
     coin = {f"evaluate-coin-phase0@{MAZE}", "evaluate-coin@phase1", "evaluate-coin@phase2"}
     try:
         # a generic evaluation key: every task's reference and evaluations (summarize follows when metrics change)
@@ -214,7 +230,7 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
         assert ran == {f"{stage}@{HOPPER}" for stage in PHASE0_STAGES}
         # a phase-2 param reruns phase 2 only (and the summary that lists the phases)
         ran = dry_run_with(lambda p: p["phases"]["phase2"].update(generate={"tasks": 8}))
-        assert ran == {"generate@phase2", "discriminate@phase2", "finetune@phase2", "summarize"}
+        assert ran == {"generate@phase2", "discriminate@phase2", "finetune@phase2", "control@phase2", "summarize"}
         # a generation default reruns generation in every phase; collect, reference and pretrain stay cached
         ran = dry_run_with(lambda p: p["evolution"]["generate"].update(cell_spread=0.3))
         assert ran == {"generate@phase1", "generate@phase2"}
@@ -253,10 +269,14 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path
         assert upstream[f"finetune@{name}"] == {f"collect@{MAZE}", source, f"discriminate@{name}"}
         assert upstream[f"evaluate@{name}"] == {f"finetune@{name}", f"reference@{MAZE}"}
         assert upstream[f"evaluate-coin@{name}"] == {f"finetune@{name}", f"reference@{MAZE}"}
+        assert upstream[f"control@{name}"] == {f"collect@{MAZE}", source}
+        assert upstream[f"evaluate-control@{name}"] == {f"control@{name}", f"evaluate@{name}", f"reference@{MAZE}"}
     assert upstream["summarize"] == {
         f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in ("reference", "evaluate-phase0")
     } | {f"evaluate-coin-phase0@{MAZE}"} | {
-        f"{stage}@{name}" for name in params.phase_names for stage in ("evaluate", "evaluate-coin", "discriminate")
+        f"{stage}@{name}"
+        for name in params.phase_names
+        for stage in ("evaluate", "evaluate-control", "evaluate-coin", "discriminate")
     }
     assert upstream["report"] == {"summarize"}
 

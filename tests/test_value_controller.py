@@ -3,6 +3,8 @@ training, and the value-planning controller that executes the first action of th
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 from conftest import maze_sim
@@ -16,6 +18,7 @@ from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.evaluation import Controller, run_episodes
 from adaptdiffuser.families.base import Simulator, Step
 from adaptdiffuser.planning import Planner, ValuePlanningController
+from adaptdiffuser.seeding import derive_seed
 
 CPU = torch.device("cpu")
 
@@ -93,16 +96,17 @@ def _planner(tiny_model_params, tiny_diffusion_params) -> Planner:
 def test_value_controller_executes_the_first_action_of_the_best_plan(tiny_model_params, tiny_diffusion_params) -> None:
     planner = _planner(tiny_model_params, tiny_diffusion_params)
     guidance = ValueGuidance(PreferFirstAction(), scale=0.0)
-    controller = ValuePlanningController(planner, guidance, n_samples=6, seed=11)
+    controller = ValuePlanningController(planner, guidance, n_samples=6, seed=12)
     envs = [maze_sim() for _ in range(2)]
     obs = np.stack([env.reset(np.random.default_rng(i)) for i, env in enumerate(envs)])
     controller.begin(envs, obs, [0, 1])
     actions = controller.act(envs, obs, 0)
 
-    # the same samples, drawn directly: per episode the chosen action is the one with the largest value
-    from adaptdiffuser.seeding import derive_seed
-
-    x = planner.sample(np.repeat(obs, 6, axis=0), None, derive_seed(11, 0, 0), guidance)
+    # the same samples, drawn directly: per episode the chosen action is the one with the largest value; sample j of
+    # episode e is seeded by (seed, e, t, j)
+    seeds = [derive_seed(12, e, 0, j) for e in (0, 1) for j in range(6)]
+    assert controller.seeds([0, 1], 0) == seeds
+    x = planner.sample(np.repeat(obs, 6, axis=0), None, seeds, guidance)
     raw = planner.actions(x).reshape(2, 6, 2)
     best = x[:, 0, 0].reshape(2, 6).argmax(dim=1).numpy()
     np.testing.assert_allclose(actions, raw[np.arange(2), best])
@@ -112,10 +116,13 @@ def test_value_controller_executes_the_first_action_of_the_best_plan(tiny_model_
 
 
 def test_value_guidance_raises_the_value_of_the_chosen_plans(tiny_model_params, tiny_diffusion_params) -> None:
-    planner = _planner(tiny_model_params, tiny_diffusion_params)
+    # an untrained epsilon-predicting denoiser returns about its input at the last step, so what guidance did to
+    # the noisy plans survives into the samples (an untrained x0-predictor would replace it by its own output)
+    eps_params = dataclasses.replace(tiny_diffusion_params, predict_epsilon=True)
+    planner = _planner(tiny_model_params, eps_params)
     obs = np.zeros((8, 4))
     plain = ValueGuidance(PreferFirstAction(), scale=0.0)
     guided = ValueGuidance(PreferFirstAction(), scale=5.0, n_guide_steps=2, t_stopgrad=0)
-    v_plain = plain.values(planner.sample(obs, None, 3, plain))
-    v_guided = guided.values(planner.sample(obs, None, 3, guided))
+    v_plain = plain.values(planner.sample(obs, None, range(8), plain))
+    v_guided = guided.values(planner.sample(obs, None, range(8), guided))
     assert v_guided.mean() > v_plain.mean() + 0.1

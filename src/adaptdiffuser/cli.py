@@ -127,6 +127,29 @@ def evaluate(
     )
 
 
+@app.command("evaluate-control")
+def evaluate_control(
+    phase: EvolutionPhase,
+    params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
+    device: Device = "auto",
+    progress: Progress = True,
+) -> None:
+    """Evaluate phase k's equal-compute control on the same episodes as phase k; write its metrics with the gain
+    of phase k over it into metrics/tasks/<task>/phase<k>-control.json."""
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.evaluate import run_evaluate
+
+    p = _params(params)
+    name = _task(p, task, evolution=True)
+    dev = resolve_device(device)
+    m = _guarded(lambda: run_evaluate(p, name, Path.cwd(), phase, dev, progress=progress, control=True))
+    typer.echo(
+        f"{name} phase {phase} control: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f}; "
+        f"gain of phase {phase} {m['gain_mean']:+.1f} +- {m['gain_stderr']:.1f} ({m['n_episodes']} paired episodes)"
+    )
+
+
 @app.command("evaluate-coin")
 def evaluate_coin(
     params: ParamsPath = Path("params.yaml"),
@@ -199,6 +222,26 @@ def finetune(
     p = _params(params)
     name = _task(p, task, evolution=True)
     out = _guarded(lambda: run_finetune(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
+    typer.echo(f"wrote {out}")
+
+
+@app.command()
+def control(
+    phase: EvolutionPhase,
+    params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
+    device: Device = "auto",
+    progress: Progress = True,
+) -> None:
+    """Phase k's equal-compute control: phase k-1's model trained as finetune@phase<k> does (same steps, seed and
+    settings) on expert data only, into models/<task>/phase<k>-control."""
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.finetune import run_finetune
+
+    p = _params(params)
+    name = _task(p, task, evolution=True)
+    dev = resolve_device(device)
+    out = _guarded(lambda: run_finetune(p, name, Path.cwd(), phase, dev, progress=progress, control=True))
     typer.echo(f"wrote {out}")
 
 

@@ -32,6 +32,18 @@ def standard_error(values: np.ndarray | list[float]) -> float:
     return float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
 
 
+def paired_gain(scores: np.ndarray, control_scores: np.ndarray) -> dict[str, float | int]:
+    """The gain of a model over its control evaluated on the same episodes (same seeds, same start states):
+    mean and standard error of the per-episode differences ``scores - control_scores``."""
+    scores, control_scores = np.asarray(scores, dtype=np.float64), np.asarray(control_scores, dtype=np.float64)
+    if scores.shape != control_scores.shape or scores.ndim != 1:
+        raise ValueError(
+            f"paired scores need one value per episode on both sides: {scores.shape} vs {control_scores.shape}"
+        )
+    diff = scores - control_scores
+    return {"gain_mean": float(diff.mean()), "gain_stderr": standard_error(diff), "gain_n_episodes": len(diff)}
+
+
 class Controller:
     """Chooses actions for a batch of environments running in lock-step."""
 

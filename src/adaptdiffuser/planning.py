@@ -3,11 +3,14 @@ that follow a plan's states are a family's own, in its folder)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import ModelBundle
 from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, Objective, ValueGuidance
+from adaptdiffuser.diffusion.noise import RowNoise
 from adaptdiffuser.diffusion.samplers import Sampler
 from adaptdiffuser.evaluation import Controller
 from adaptdiffuser.seeding import derive_seed
@@ -34,22 +37,33 @@ class Planner:
         return Guidance(objective, alpha, lambda x: self.normalizer.unnormalize(x)[..., self.act_dim :])
 
     def plan(
-        self, starts: np.ndarray, goals: np.ndarray | None, seed: int, guidance: GuidanceBase | None = None
+        self,
+        starts: np.ndarray,
+        goals: np.ndarray | None,
+        seeds: Sequence[int] | np.ndarray,
+        guidance: GuidanceBase | None = None,
     ) -> np.ndarray:
         """Plans ``[batch, horizon, act_dim + obs_dim]`` in raw units from ``starts`` (and to ``goals`` when the
-        model is goal-conditioned; ``None`` for start-conditioned models), optionally guided."""
-        x = self.sample(starts, goals, seed, guidance)
+        model is goal-conditioned; ``None`` for start-conditioned models), optionally guided. ``seeds`` holds one
+        seed per row: a row's plan depends on its own seed, start, goal and guidance, not on the other rows."""
+        x = self.sample(starts, goals, seeds, guidance)
         return self.normalizer.unnormalize(x.double().cpu().numpy())
 
     def sample(
-        self, starts: np.ndarray, goals: np.ndarray | None, seed: int, guidance: GuidanceBase | None = None
+        self,
+        starts: np.ndarray,
+        goals: np.ndarray | None,
+        seeds: Sequence[int] | np.ndarray,
+        guidance: GuidanceBase | None = None,
     ) -> torch.Tensor:
         """Like :meth:`plan`, but the normalized trajectories as a tensor on the planner's device."""
+        noise = RowNoise(seeds, self.device)
+        if len(noise) != len(starts):
+            raise ValueError(f"{len(starts)} starts but {len(noise)} seeds; give one seed per row")
         conditions = {0: self._normalize_states(starts)}
         if goals is not None:
             conditions[self.horizon - 1] = self._normalize_states(goals)
-        generator = torch.Generator(device=self.device).manual_seed(int(seed))
-        return self.sampler.sample(self.model, len(starts), conditions, generator, guidance)
+        return self.sampler.sample(self.model, conditions, noise, guidance)
 
     def actions(self, x: torch.Tensor) -> np.ndarray:
         """The raw first actions ``[batch, act_dim]`` of normalized trajectories ``x``."""
@@ -58,8 +72,9 @@ class Planner:
 
 class ValuePlanningController(Controller):
     """Diffuser's locomotion controller: at every step, sample ``n_samples`` start-conditioned plans per episode
-    from the current observation (all episodes in one batch), guided by the learned value, and execute the first
-    action of each episode's highest-value plan. The plans of step 0 are kept for pictures."""
+    from the current observation (all episodes in one batch, each plan seeded by its episode, step and sample
+    index, see :meth:`seeds`), guided by the learned value, and execute the first action of each episode's
+    highest-value plan. The plans of step 0 are kept for pictures."""
 
     def __init__(self, planner: Planner, guidance: ValueGuidance, n_samples: int, seed: int) -> None:
         if n_samples <= 0:
@@ -69,15 +84,18 @@ class ValuePlanningController(Controller):
         self.n_samples = n_samples
         self.seed = seed
 
+    def seeds(self, episodes: Sequence[int], t: int) -> list[int]:
+        """The seeds of the plans sampled at step ``t``: sample ``j`` of episode ``e`` uses ``(seed, e, t, j)``,
+        rows in the order of ``np.repeat(obs, n_samples, axis=0)``."""
+        return [derive_seed(self.seed, e, t, j) for e in episodes for j in range(self.n_samples)]
+
     def begin(self, envs, obs, episodes):
         self.episodes = episodes
         self.first_plans = None
 
     def act(self, envs, obs, t):
         n = self.n_samples
-        x = self.planner.sample(
-            np.repeat(obs, n, axis=0), None, derive_seed(self.seed, self.episodes[0], t), self.guidance
-        )
+        x = self.planner.sample(np.repeat(obs, n, axis=0), None, self.seeds(self.episodes, t), self.guidance)
         values = self.guidance.values(x).reshape(len(obs), n)
         best = values.argmax(dim=1) + torch.arange(len(obs), device=x.device) * n
         chosen = x[best]

@@ -75,10 +75,22 @@ def save_discriminator_histograms(judgement: Judgement, max_error: float, path: 
     _save(fig, path)
 
 
-def save_score_by_phase(phases: list[int], means: list[float], stderrs: list[float], path: str | Path) -> None:
-    """One PNG: normalized score of each phase with standard-error bars (phase 0 is the Diffuser baseline)."""
-    fig, ax = plt.subplots(figsize=(4, 3))
-    ax.errorbar(phases, means, yerr=stderrs, marker="o", capsize=4)
+def save_score_by_phase(
+    phases: list[int],
+    means: list[float],
+    stderrs: list[float],
+    path: str | Path,
+    control: tuple[list[int], list[float], list[float]] | None = None,
+) -> None:
+    """One PNG: normalized score of each phase with standard-error bars (phase 0 is the Diffuser baseline) and,
+    when given, each phase's equal-compute control (phase k-1's model trained as long on expert data only)."""
+    fig, ax = plt.subplots(figsize=(4.4, 3.2))
+    ax.errorbar(phases, means, yerr=stderrs, marker="o", capsize=4, label="AdaptDiffuser")
+    if control is not None and control[0]:
+        c_phases, c_means, c_stderrs = control
+        offset = [p + 0.08 for p in c_phases]  # side by side with the phase's own point
+        ax.errorbar(offset, c_means, yerr=c_stderrs, marker="s", capsize=4, ls="none", label="control (expert only)")
+        ax.legend(fontsize=7)
     ax.set_xticks(phases)
     ax.set_xlabel("phase (0 = Diffuser)")
     ax.set_ylabel("normalized score")

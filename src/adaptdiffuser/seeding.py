@@ -1,4 +1,5 @@
-"""Derived seeds: one integer seed from a params seed and the indices of what it is for (phase, batch, step)."""
+"""Derived seeds: one integer seed from a params seed and the indices of what it is for (phase, task, episode,
+step, sample), never from a batch position, so results do not depend on how work is batched."""
 
 from __future__ import annotations
 

@@ -15,8 +15,8 @@ def stage_names(params: Params) -> list[str]:
         if task in params.coin_tasks:
             names.append(f"evaluate-coin-phase0@{task}")
     for phase in params.phases:
-        names += [f"{stage}@{phase.name}" for stage in ("generate", "discriminate", "finetune", "evaluate")]
-        names.append(f"evaluate-coin@{phase.name}")
+        stages = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
+        names += [f"{stage}@{phase.name}" for stage in stages]
     return [*names, "summarize", "report"]
 
 
@@ -66,6 +66,8 @@ def describe(params: Params) -> list[str]:
                 f"  finetune@{k}: {max(1, round(f.steps_fraction * t.pretrain.steps))} steps on phases "
                 f"{p.lineage(phase.index)} + expert ({f.expert_weight:g} of each batch)",
                 f"  evaluate@{k}: {t.evaluate.episodes} episodes",
+                f"  control@{k}: the same steps from phase{phase.previous} on expert data only (equal compute)",
+                f"  evaluate-control@{k}: the control on the same episodes; gain of {k} over it",
                 f"  evaluate-coin@{k}: {t.settings.gold_coin.cases_per_kind} gold-coin cases per kind",
             ]
     return [*lines, "  summarize", "  report"]

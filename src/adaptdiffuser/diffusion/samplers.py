@@ -1,6 +1,7 @@
 """One sampler interface, two implementations: the full DDPM chain and a strided deterministic DDIM; both take
 optional guidance (reward-gradient or value, see :mod:`adaptdiffuser.diffusion.guidance`), combinable with
-inpainting."""
+inpainting. Noise comes from a :class:`~adaptdiffuser.diffusion.noise.RowNoise` (one seeded generator per row), so a
+row's sample does not depend on the rest of its batch."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import torch
 from adaptdiffuser.diffusion.conditions import Conditions, apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.diffusion.guidance import GuidanceBase
+from adaptdiffuser.diffusion.noise import RowNoise
 
 
 class Sampler(ABC):
@@ -38,17 +40,18 @@ class Sampler(ABC):
     def sample(
         self,
         diffusion: GaussianDiffusion,
-        batch: int,
         conditions: Conditions,
-        generator: torch.Generator,
+        noise: RowNoise,
         guidance: GuidanceBase | None = None,
     ) -> torch.Tensor:
-        """Run the chain from pure noise; return normalized trajectories. With ``guidance``, each step first
-        calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), then adds
+        """Run the chain from pure noise; return normalized trajectories ``[len(noise), horizon, transition]``,
+        row ``i`` drawing its initial and per-step noise from row ``i`` of ``noise`` only. With ``guidance``, each
+        step first calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), then adds
         ``guidance.mean_shift`` to the step's mean (reward guidance, paper Eq. 5) before noise and inpainting."""
-        device = next(diffusion.parameters()).device
-        shape = (batch, diffusion.horizon, diffusion.transition_dim)
-        x = torch.randn(shape, device=device, generator=generator)
+        for t, value in conditions.items():
+            if value.shape[0] != len(noise):
+                raise ValueError(f"condition at step {t} has {value.shape[0]} rows but the noise has {len(noise)}")
+        x = noise.randn((diffusion.horizon, diffusion.transition_dim))
         act_dim = diffusion.act_dim
         x = apply_inpainting(x, conditions, act_dim)
         steps = self.timesteps(diffusion)
@@ -59,7 +62,7 @@ class Sampler(ABC):
             if guidance is not None:
                 mean = mean + guidance.mean_shift(mean, log_var.exp())
             if self.stochastic and t_prev >= 0:
-                mean = mean + (0.5 * log_var).exp() * torch.randn(x.shape, device=x.device, generator=generator)
+                mean = mean + (0.5 * log_var).exp() * noise.randn(x.shape[1:])
             x = apply_inpainting(mean, conditions, act_dim)
         return x
 

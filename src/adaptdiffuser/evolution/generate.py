@@ -44,9 +44,9 @@ class NavigationTasks:
 def generate_plans(
     planner: Planner, tasks: NavigationTasks, batch_size: int, seed: int, alpha: float = 0.0, progress: bool = True
 ) -> np.ndarray:
-    """Plans ``[n_tasks, horizon, act_dim + obs_dim]`` (raw units), one per task, sampled in batches; batch
-    ``b`` uses seed ``(seed, b)`` so the result does not depend on what else runs. Tasks with a coin are planned
-    in their own batches, guided toward their coin with scale ``alpha``."""
+    """Plans ``[n_tasks, horizon, act_dim + obs_dim]`` (raw units), one per task, sampled in batches; task ``i``
+    uses seed ``(seed, i)``, so its plan depends neither on the batch size nor on what else runs. Tasks with a coin
+    are planned in their own batches, guided toward their coin with scale ``alpha``."""
     if batch_size <= 0:
         raise ValueError(f"batch_size must be positive, got {batch_size}")
     plans = np.zeros((len(tasks), planner.horizon, planner.model.transition_dim))
@@ -56,12 +56,13 @@ def generate_plans(
         for coin, rows in ((False, np.flatnonzero(~with_coin)), (True, np.flatnonzero(with_coin)))
         for i in range(0, len(rows), batch_size)
     ]
-    for b, (rows, coin) in enumerate(tqdm(batches, desc="generate", disable=not progress)):
+    for rows, coin in tqdm(batches, desc="generate", disable=not progress):
         guidance = None
         if coin:
             coins = torch.as_tensor(tasks.coins[rows], dtype=torch.float32, device=planner.device)
             guidance = planner.guidance(CoinObjective(coins), alpha)
-        plans[rows] = planner.plan(tasks.starts[rows], tasks.goals[rows], seed=derive_seed(seed, b), guidance=guidance)
+        seeds = [derive_seed(seed, i) for i in rows]
+        plans[rows] = planner.plan(tasks.starts[rows], tasks.goals[rows], seeds, guidance=guidance)
     return plans
 
 

@@ -23,8 +23,14 @@ def reference_path(task: str) -> Path:
     return Path(f"metrics/tasks/{task}/reference.json")
 
 
-def model_dir(task: str, phase: int) -> Path:
-    return Path(f"models/{task}/phase{phase}")
+def phase_name(phase: int, control: bool = False) -> str:
+    """``phase<k>``, or ``phase<k>-control`` for the equal-compute control of evolution phase k (phase k-1's model
+    trained the same steps on expert data only)."""
+    return f"phase{phase}-control" if control else f"phase{phase}"
+
+
+def model_dir(task: str, phase: int, control: bool = False) -> Path:
+    return Path(f"models/{task}/{phase_name(phase, control)}")
 
 
 def value_dir(task: str) -> Path:
@@ -37,17 +43,17 @@ def collect_dir(task: str) -> Path:
     return Path(f"models/{task}/collect")
 
 
-def results_dir(task: str, phase: int) -> Path:
-    return Path(f"results/{task}/phase{phase}")
+def results_dir(task: str, phase: int, control: bool = False) -> Path:
+    return Path(f"results/{task}/{phase_name(phase, control)}")
 
 
-def plots_dir(task: str, phase: int) -> Path:
-    return Path(f"plots/{task}/phase{phase}")
+def plots_dir(task: str, phase: int, control: bool = False) -> Path:
+    return Path(f"plots/{task}/{phase_name(phase, control)}")
 
 
-def phase_metrics_path(task: str, phase: int) -> Path:
-    """Evaluation metrics of a phase (written by its evaluate stage)."""
-    return Path(f"metrics/tasks/{task}/phase{phase}.json")
+def phase_metrics_path(task: str, phase: int, control: bool = False) -> Path:
+    """Evaluation metrics of a phase or of its control (written by its evaluate / evaluate-control stage)."""
+    return Path(f"metrics/tasks/{task}/{phase_name(phase, control)}.json")
 
 
 def discriminator_metrics_path(task: str, phase: int) -> Path:

@@ -1,4 +1,5 @@
-"""Stage ``evaluate``: a phase's planner on a task under its protocol; results, pictures and metrics."""
+"""Stages ``evaluate`` and ``evaluate-control``: a phase's planner (or its equal-compute control's) on a task under
+its protocol; results, pictures and metrics, and for a control the paired gain of the phase over it."""
 
 from __future__ import annotations
 
@@ -13,32 +14,54 @@ import torch
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.evaluation import normalized_score, run_episodes, summarize
+from adaptdiffuser.errors import StageError
+from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, summarize
 from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.io import atomic_path, read_json, write_json
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.stages.common import model_dir, phase_metrics_path, plots_dir, reference_path, results_dir
+from adaptdiffuser.stages.common import (
+    model_dir,
+    phase_metrics_path,
+    phase_name,
+    plots_dir,
+    reference_path,
+    results_dir,
+)
 from adaptdiffuser.tracking import stage_run
 
 
 def run_evaluate(
-    params: Params, task_name: str, root: Path, phase: int, device: torch.device, progress: bool = True
+    params: Params,
+    task_name: str,
+    root: Path,
+    phase: int,
+    device: torch.device,
+    progress: bool = True,
+    control: bool = False,
 ) -> dict:
     """Stage ``evaluate``: run phase ``phase``'s planner on the task's evaluation episodes (batched), write the
-    per-episode table, pictures of the first episodes and the metrics (score mean and standard error)."""
+    per-episode table, pictures of the first episodes and the metrics (score mean and standard error).
+
+    With ``control``, evaluate phase k's control model on the same episodes instead, and add the gain of phase k
+    over it (``gain_mean``, ``gain_stderr``: paired over episodes; phase k's evaluation must exist)."""
     task = params.resolve(task_name)
     family = get_family(task.family)
     ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
-    bundle = load_bundle(root / model_dir(task.name, phase), device)
+    model = model_dir(task.name, phase, control)
+    bundle = load_bundle(root / model, device)
+    evolved_table = root / results_dir(task.name, phase) / "episodes.parquet"
+    if control and not evolved_table.exists():
+        raise FileNotFoundError(f"{evolved_table}: phase {phase}'s evaluation, needed for the gain over its control")
     ev, pl = task.evaluate, task.planner
     logged = {
         "task": task.section("settings"),
         "planner": task.section("planner"),
         "evaluate": task.section("evaluate"),
-        "model": {"path": str(model_dir(task.name, phase)), "data": bundle.config.get("data", {})},
+        "model": {"path": str(model), "data": bundle.config.get("data", {})},
     }
-    with stage_run(task.name, "evaluate", phase, logged, root):
+    name = phase_name(phase, control)
+    with stage_run(task.name, "evaluate-control" if control else "evaluate", phase, logged, root):
         files = TaskFiles(root, task.name)
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
         controller = family.controller(task, planner, files, device)
@@ -48,7 +71,7 @@ def run_evaluate(
             ev.episodes,
             ev.seed,
             ev.batch_size,
-            desc=f"evaluate {task.name} phase {phase}",
+            desc=f"evaluate {task.name} {name}",
             progress=progress,
         )
         metrics = summarize(result, ref["r_min"], ref["r_max"]) | family.episode_metrics(result)
@@ -63,17 +86,24 @@ def run_evaluate(
                 **family.episode_columns(result),
             }
         )
-        out = root / results_dir(task.name, phase) / "episodes.parquet"
+        if control:
+            evolved = pq.read_table(evolved_table, columns=["episode", "score"]).to_pydict()
+            if evolved["episode"] != result.episodes:
+                raise StageError(
+                    f"{evolved_table}: its episodes differ from the control's; rerun evaluate@phase{phase}"
+                )
+            metrics |= paired_gain(np.asarray(evolved["score"]), scores)
+        out = root / results_dir(task.name, phase, control) / "episodes.parquet"
         out.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(out) as tmp:
             pq.write_table(table, tmp)
-        pictures = root / plots_dir(task.name, phase)
+        pictures = root / plots_dir(task.name, phase, control)
         for i in range(min(ev.pictures, ev.episodes)):
             picture = pictures / f"plan_{i:02d}.png"
-            title = f"{task.name} phase {phase}, episode {i}: return {result.returns[i]:.0f}, score {scores[i]:.0f}"
+            title = f"{task.name} {name}, episode {i}: return {result.returns[i]:.0f}, score {scores[i]:.0f}"
             family.save_picture(task, picture, result.plans[i], result.executed[i], title, goal=result.goals[i])
             mlflow.log_artifact(str(picture), artifact_path="plans")
-        write_json(root / phase_metrics_path(task.name, phase), metrics)
+        write_json(root / phase_metrics_path(task.name, phase, control), metrics)
         mlflow.log_metrics({k: float(v) for k, v in metrics.items()})
         mlflow.log_artifact(str(out))
     return metrics

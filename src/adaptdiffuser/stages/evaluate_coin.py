@@ -66,7 +66,9 @@ def run_evaluate_coin(
         goals = np.stack([env.goal_state()] * len(cases))
         picked = list(range(min(gc.pictures, len(cases))))
         if picked:
-            plain = planner.plan(cases.starts[picked], goals[picked], seed=gc.seed)[:, :, planner.act_dim :]
+            # the unguided plans on the same noise as the guided first plans (each case's seed at t = 0)
+            seeds = controller.seeds(picked, 0)
+            plain = planner.plan(cases.starts[picked], goals[picked], seeds)[:, :, planner.act_dim :]
         for i in picked:
             picture = pictures / f"coin_{i:02d}.png"
             verdict = "picked + goal" if outcomes[i].both else ("picked" if outcomes[i].picked else "missed")

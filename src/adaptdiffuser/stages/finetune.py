@@ -1,4 +1,5 @@
-"""Stage ``finetune@phase<k>``: continue training phase k-1's model on expert plus selected synthetic data."""
+"""Stages ``finetune@phase<k>`` (continue phase k-1's model on expert plus selected synthetic data) and
+``control@phase<k>`` (the same training on expert data only: the equal-compute control of phase k)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed
-from adaptdiffuser.stages.common import file_digest, model_dir, selected_path
+from adaptdiffuser.stages.common import file_digest, model_dir, phase_name, selected_path
 from adaptdiffuser.stages.pretrain import expert_training_data
 from adaptdiffuser.tracking import stage_run
 from adaptdiffuser.training import fingerprint, train
@@ -29,11 +30,18 @@ def finetune_config(params: Params, task: TaskParams, phase: int) -> PretrainPar
 
 
 def run_finetune(
-    params: Params, task_name: str, root: Path, phase: int, device: torch.device, progress: bool = True
+    params: Params,
+    task_name: str,
+    root: Path,
+    phase: int,
+    device: torch.device,
+    progress: bool = True,
+    control: bool = False,
 ) -> Path:
     """Start from phase k-1's weights, EMA and normalizer; train on the expert data mixed with the data selected
     in phase k and its ancestors (``finetune.expert_weight`` of each batch is expert); write
-    ``models/<task>/phase<k>``."""
+    ``models/<task>/phase<k>``. With ``control``, train on expert data only, with the same steps, seed and
+    settings, into ``models/<task>/phase<k>-control``: the difference between the two is the synthetic data."""
     task = params.resolve(task_name)
     cfg = params.phase(phase)
     source = model_dir(task.name, cfg.previous)
@@ -41,25 +49,26 @@ def run_finetune(
     expert, expert_info = expert_training_data(task, root)
     synthetic_info = {}
     parts = [WindowDataset(expert, task.diffusion.horizon, bundle.normalizer)]
-    for j in params.lineage(phase):
+    for j in [] if control else params.lineage(phase):
         path = root / selected_path(task.name, j)
         parts.append(WindowDataset(read_trajectories(path), task.diffusion.horizon, bundle.normalizer))
         synthetic_info[f"phase{j}"] = {"path": str(selected_path(task.name, j)), "sha256": file_digest(path)}
-    w = cfg.finetune.expert_weight
-    synthetic_share = (1.0 - w) / (len(parts) - 1)
+    w = 1.0 if control else cfg.finetune.expert_weight
+    synthetic_share = (1.0 - w) / max(1, len(parts) - 1)
     dataset = MixedWindowDataset(parts, [w] + [synthetic_share] * (len(parts) - 1))
     train_cfg = finetune_config(params, task, phase)
     logged = {
-        "finetune": asdict(cfg.finetune),
+        "finetune": asdict(cfg.finetune) | {"control": control},
         "train": asdict(train_cfg),
         "model": {"path": str(source), "phase": cfg.previous},
         "data": {"expert": expert_info, "synthetic": synthetic_info},
     }
-    with stage_run(task.name, "finetune", phase, logged, root):
+    stage = "control" if control else "finetune"
+    with stage_run(task.name, stage, phase, logged, root):
         mlflow.log_metrics(
             {f"windows.{name}": len(p) for name, p in zip(["expert", *synthetic_info], parts, strict=True)}
         )
-        resume = root / "models" / ".resume" / f"{task.name}-phase{phase}.pt"
+        resume = root / "models" / ".resume" / f"{task.name}-{phase_name(phase, control)}.pt"
         resume.parent.mkdir(parents=True, exist_ok=True)
         history = train(
             bundle,
@@ -76,9 +85,10 @@ def run_finetune(
             "phase": phase,
             "previous": cfg.previous,
             "finetune": asdict(cfg.finetune),
+            "control": control,
             "data": logged["data"],
         }
-        out = root / model_dir(task.name, phase)
+        out = root / model_dir(task.name, phase, control)
         save_bundle(out, bundle)
         save_loss_curve(history, out / "train_loss.png")
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")

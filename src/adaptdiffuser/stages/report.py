@@ -1,4 +1,5 @@
-"""Stage ``report``: per task, score by phase as a PNG with error bars and a CSV table for ``dvc plots show``."""
+"""Stage ``report``: per task, score by phase (and its equal-compute control's) as a PNG with error bars and a CSV
+table for ``dvc plots show``."""
 
 from __future__ import annotations
 
@@ -9,11 +10,23 @@ from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.plots import save_score_by_phase
 from adaptdiffuser.stages.common import SUMMARY, report_plot_path, score_table_path
 
-TABLE_COLUMNS = ("phase", "score_mean", "score_stderr", "return_mean", "n_episodes", "kept")
+TABLE_COLUMNS = (
+    "phase",
+    "score_mean",
+    "score_stderr",
+    "control_score_mean",
+    "control_score_stderr",
+    "gain_mean",
+    "gain_stderr",
+    "return_mean",
+    "n_episodes",
+    "kept",
+)
 
 
 def score_table(task_summary: dict) -> list[dict]:
-    """One row per phase, in phase order, from one task's entry of ``metrics/summary.json``."""
+    """One row per phase, in phase order, from one task's entry of ``metrics/summary.json`` (phase 0 has no
+    control: its control and gain cells are empty)."""
     rows = []
     for key, entry in task_summary.items():
         if not key.startswith("phase_"):
@@ -22,6 +35,10 @@ def score_table(task_summary: dict) -> list[dict]:
             {
                 "phase": int(key.removeprefix("phase_")),
                 **{k: entry[k] for k in ("score_mean", "score_stderr", "return_mean", "n_episodes")},
+                "control_score_mean": entry.get("control", {}).get("score_mean"),
+                "control_score_stderr": entry.get("control", {}).get("score_stderr"),
+                "gain_mean": entry.get("gain_mean"),
+                "gain_stderr": entry.get("gain_stderr"),
                 "kept": entry.get("discriminator", {}).get("kept", 0),
             }
         )
@@ -41,11 +58,17 @@ def run_report(root: Path) -> dict[str, list[dict]]:
             writer = csv.DictWriter(f, fieldnames=TABLE_COLUMNS)
             writer.writeheader()
             writer.writerows(rows)
+        controls = [r for r in rows if r["control_score_mean"] is not None]
         save_score_by_phase(
             [r["phase"] for r in rows],
             [r["score_mean"] for r in rows],
             [r["score_stderr"] for r in rows],
             root / report_plot_path(task),
+            control=(
+                [r["phase"] for r in controls],
+                [r["control_score_mean"] for r in controls],
+                [r["control_score_stderr"] for r in controls],
+            ),
         )
         tables[task] = rows
     return tables

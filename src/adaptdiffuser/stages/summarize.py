@@ -15,6 +15,7 @@ from adaptdiffuser.stages.common import (
 )
 
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean")
+GAIN_KEYS = ("gain_mean", "gain_stderr")
 
 
 def task_phases(params: Params, task: str) -> list[int]:
@@ -23,9 +24,10 @@ def task_phases(params: Params, task: str) -> list[int]:
 
 
 def run_summarize(params: Params, root: Path) -> dict:
-    """``{task: {"dataset": {...}?, "phase_k": {score_mean, score_stderr, ..., "gold_coin"?, "discriminator"?}}}``:
-    each phase's evaluation metrics, its gold-coin metrics where the task has them, the discriminator counts of
-    evolution phases, and the dataset's own score where the reference stage measured it."""
+    """``{task: {"dataset": {...}?, "phase_k": {score_mean, score_stderr, ..., gain_mean?, gain_stderr?,
+    "control"?, "discriminator"?}}}``: each phase's evaluation metrics, its gold-coin metrics where the task has
+    them; for evolution phases the discriminator counts, the equal-compute control's metrics and the gain of the
+    phase over it (paired over episodes); and the dataset's own score where the reference stage measured it."""
     summary: dict[str, dict] = {}
     for task in params.tasks:
         entry: dict[str, dict] = {}
@@ -40,6 +42,11 @@ def run_summarize(params: Params, root: Path) -> dict:
             if k > 0:
                 report = read_json(root / discriminator_metrics_path(task, k), f"discriminator report of phase {k}")
                 phase["discriminator"] = {key: report[key] for key in SUMMARY_DISCRIMINATOR_KEYS}
+                control = read_json(
+                    root / phase_metrics_path(task, k, control=True), f"metrics of {task} phase {k}'s control"
+                )
+                phase.update({key: control.pop(key) for key in GAIN_KEYS})
+                phase["control"] = {key: value for key, value in control.items() if not key.startswith("gain_")}
             entry[f"phase_{k}"] = phase
         summary[task] = entry
     write_json(root / SUMMARY, summary)

@@ -3,7 +3,7 @@ evaluation controller that plans once (or every ``replan_every`` steps) and foll
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -35,7 +35,8 @@ class PlanFollower:
 
 class PlannerController(Controller):
     """Plan at t = 0 (and every ``replan_every`` steps if > 0), follow the plan's states in between;
-    ``guidance_for(episodes)`` gives the guidance of a batch of episodes, if any."""
+    ``guidance_for(episodes)`` gives the guidance of a batch of episodes, if any. Each episode's plans are seeded
+    by the episode and the step (:meth:`seeds`), so they do not depend on the batch size."""
 
     def __init__(
         self,
@@ -49,6 +50,10 @@ class PlannerController(Controller):
         self.replan_every = replan_every
         self.guidance_for = guidance_for
 
+    def seeds(self, episodes: Sequence[int], t: int) -> list[int]:
+        """The seeds of the plans made at step ``t``: episode ``e``'s plan uses ``(seed, e, t)``, whatever its batch."""
+        return [derive_seed(self.seed, e, t) for e in episodes]
+
     def begin(self, envs, obs, episodes):
         self.episodes = episodes
         self.first_plans = None
@@ -56,9 +61,8 @@ class PlannerController(Controller):
     def act(self, envs, obs, t):
         if t == 0 or (self.replan_every and t % self.replan_every == 0):
             goals = np.stack([env.goal_state() for env in envs])
-            seed = derive_seed(self.seed, self.episodes[0], t)
             guidance = self.guidance_for(self.episodes) if self.guidance_for else None
-            plans = self.planner.plan(obs, goals, seed=seed, guidance=guidance)
+            plans = self.planner.plan(obs, goals, self.seeds(self.episodes, t), guidance=guidance)
             obs_part = plans[:, :, self.planner.act_dim :]
             self.followers = [PlanFollower(env, p) for env, p in zip(envs, obs_part, strict=True)]
             self.plan_time = t
