@@ -335,9 +335,18 @@ REJECTED = [
             "task": {"hopper-medium": {"family": "locomotion"}},
             "tasks": [UMAZE, "hopper-medium"],
             "evolve": "hopper-medium",
+            "evolution": {"discriminate": {"tracking": False}},
         },
-        "evolve",
-        "not implemented for the locomotion family",
+        "phases.phase1.discriminate.tracking",
+        "locomotion segments are judged by executing them",
+    ),
+    (
+        {
+            "task": {"hopper-medium": {"family": "locomotion", "evolution": {"reset_fraction": 1.5}}},
+            "tasks": [UMAZE, "hopper-medium"],
+        },
+        "task.hopper-medium.evolution.reset_fraction",
+        "less than or equal to 1",
     ),
     # task entries: names, families, their shape
     ({"task": None}, "task", "must be a mapping of task names to their settings"),

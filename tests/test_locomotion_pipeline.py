@@ -4,6 +4,7 @@ evaluation under D4RL's score, with the smoke profile's tiny settings."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -16,11 +17,24 @@ import yaml
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
 from adaptdiffuser.data.schema import read_trajectories
+from adaptdiffuser.families.locomotion.evolution import selection_rule
 from adaptdiffuser.families.locomotion.family import episode_returns
 from adaptdiffuser.families.locomotion.reference import normalized_score
+from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.stages.collect import run_collect
-from adaptdiffuser.stages.common import dataset_path, model_dir, phase_metrics_path, reference_path, results_dir
+from adaptdiffuser.stages.common import (
+    dataset_path,
+    generated_path,
+    model_dir,
+    phase_metrics_path,
+    reference_path,
+    results_dir,
+    selected_path,
+)
+from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
+from adaptdiffuser.stages.finetune import run_finetune
+from adaptdiffuser.stages.generate import run_generate
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
 from adaptdiffuser.stages.summarize import run_summarize
@@ -80,3 +94,49 @@ def test_locomotion_baseline_stages(tmp_path: Path, name: str, state_dim: int, t
     assert table["score"] == pytest.approx(list(normalized_score(np.array(table["return"]), name)))
     summary = run_summarize(params, tmp_path)[name]
     assert summary["dataset"] == ref["dataset"] and summary["phase_0"]["score_mean"] == metrics["score_mean"]
+
+
+def test_locomotion_evolution_phase(tmp_path: Path) -> None:
+    """hopper-medium phase 1: value-guided segments from dataset states and resets, executed in the simulator from
+    the same full state, selected by real reward; fine-tuned model and its equal-compute control; and phase 2's
+    paper rule on reward per step x 1000."""
+    name = "hopper-medium"
+    raw = yaml.safe_load(apply_profile("smoke", PROFILES, tmp_path / "params.yaml").read_text())
+    raw.update(tasks=[name], coin_tasks=[], evolve=name)
+    params = params_from_dict(raw)
+    device = torch.device("cpu")
+    run_collect(params, name, tmp_path, progress=False)
+    run_pretrain(params, name, tmp_path, device, progress=False)
+    stats = run_generate(params, name, tmp_path, 1, device, progress=False)
+    g = params.phase(1).generate
+    assert stats["generated"] == g.tasks and stats["from_dataset"] == g.tasks // 2
+    generated = read_trajectories(tmp_path / generated_path(name, 1))
+    horizon = params.resolve(name).diffusion.horizon
+    assert len(generated) == g.tasks * horizon and generated.extra["task_start_state"].shape == (len(generated), 12)
+
+    report = run_discriminate(params, name, tmp_path, 1, progress=False)
+    assert report["generated"] == g.tasks and report["kept"] >= 1
+    selected = read_trajectories(tmp_path / selected_path(name, 1))
+    assert selected.sim_state is not None and not selected.terminal.any()
+    # the kept rows are what the simulator did: replaying each segment's actions from its first state reproduces them
+    sim = get_family("locomotion").make_simulator(params.resolve(name))
+    first = selected.episodes()[0]
+    sim.set_state(selected.sim_state[first.start])
+    for row in range(first.start, first.stop - 1):
+        step = sim.step(selected.action[row].astype(np.float64))
+        np.testing.assert_allclose(step.observation, selected.observation[row + 1], atol=1e-5)
+        assert step.reward == pytest.approx(float(selected.reward[row]), abs=1e-4)
+
+    run_finetune(params, name, tmp_path, 1, device, progress=False)
+    run_finetune(params, name, tmp_path, 1, device, progress=False, control=True)
+    for control in (False, True):  # the value function travels with every model
+        assert (tmp_path / model_dir(name, 1, control) / "value" / "value.pt").exists()
+    run_reference(params, name, tmp_path, progress=False)
+    run_evaluate(params, name, tmp_path, 1, device, progress=False)
+    gain = run_evaluate(params, name, tmp_path, 1, device, progress=False, control=True)
+    assert gain["gain_n_episodes"] == params.resolve(name).evaluate.episodes
+
+    rule = selection_rule(name, dataclasses.replace(params.phase(2).discriminate, rule="paper"), 2)
+    assert rule.threshold == 3225  # the paper's phase-2 threshold for Hopper-medium
+    kept = rule.select(np.array([3.3, 3.0, 10.0]), np.array([1, 1, 4]))  # 3300, 3000 and 2500 per 1000 steps
+    assert kept.tolist() == [0]

@@ -264,8 +264,8 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path
     for phase in params.phases:
         name = phase.name
         source = f"pretrain@{MAZE}" if phase.previous == 0 else f"finetune@phase{phase.previous}"
-        assert upstream[f"generate@{name}"] == {source}
-        assert upstream[f"discriminate@{name}"] == {f"generate@{name}"}
+        assert upstream[f"generate@{name}"] == {source, f"collect@{MAZE}"}
+        assert upstream[f"discriminate@{name}"] == {f"generate@{name}", f"collect@{MAZE}"}
         assert upstream[f"finetune@{name}"] == {f"collect@{MAZE}", source, f"discriminate@{name}"}
         assert upstream[f"evaluate@{name}"] == {f"finetune@{name}", f"reference@{MAZE}"}
         assert upstream[f"evaluate-coin@{name}"] == {f"finetune@{name}", f"reference@{MAZE}"}

@@ -165,6 +165,9 @@ def evaluate_coin(
     p = _params(params)
     name = _task(p, task, evolution=True)
     gold = _guarded(lambda: run_evaluate_coin(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
+    if "skipped" in gold:
+        typer.echo(f"phase {phase}: skipped, {gold['skipped']}")
+        return
     typer.echo(
         f"phase {phase}, alpha {p.alpha:g}: coin both-rate {gold['both_rate']:.2f} +- {gold['both_rate_stderr']:.2f} "
         f"(pick {gold['pick_rate']:.2f}, goal {gold['goal_rate']:.2f}, {gold['n_episodes']} cases)"

@@ -6,7 +6,9 @@ A family is one folder under ``families/`` and one line in :mod:`adaptdiffuser.f
 * :class:`Simulator`: the real dynamics of one episode: reset, reset to a stored full state, step with the real
   reward and termination, and a picture of an episode.
 * :class:`Family`: builds the simulator of a task, makes the task's dataset, the score reference, the controller
-  that turns plans into actions, and says whether its planner needs a value function.
+  that turns plans into actions, and says whether its planner needs a value function. A family whose tasks
+  evolve (``"evolve"`` in its task settings' ``OPTIONAL_STAGES``) also generates synthetic data with guidance and
+  judges it in the simulator (:meth:`Family.generate`, :meth:`Family.discriminate`, :meth:`Family.selected_data`).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import numpy as np
 if TYPE_CHECKING:
     from adaptdiffuser.data.schema import Trajectories
     from adaptdiffuser.evaluation import Controller, EpisodeBatchResult
+    from adaptdiffuser.evolution.discriminator import Judgement
 
 
 @dataclass(frozen=True)
@@ -119,6 +122,37 @@ class Family(ABC):
         """Facts about the task worth logging next to its runs (env id, dataset kind...)."""
         return {}
 
+    # -- evolution (families whose tasks evolve) --------------------------------------------------------------------
+
+    def generate(
+        self,
+        task: Any,
+        planner: Any,
+        files: TaskFiles,
+        cfg: Any,
+        alpha: float,
+        seed: int,
+        generator: dict[str, Any],
+        progress: bool,
+    ) -> tuple[Trajectories, dict[str, float]]:
+        """Synthetic plans of phase k (``cfg``: its ``GenerateParams``) from ``planner`` (phase k-1's model), for
+        tasks the family samples with ``seed``; returns the plans as a dataset (``generator`` goes into its
+        metadata) and statistics to log."""
+        raise NotImplementedError(f"family {self.name!r} has no evolution phases")
+
+    def discriminate(
+        self, task: Any, generated: Trajectories, cfg: Any, phase: int, files: TaskFiles, progress: bool
+    ) -> Judgement:
+        """Execute each generated plan in the real simulator, reject those the dynamics cannot follow and select
+        among the rest by real reward (``cfg``: phase ``phase``'s ``DiscriminateParams``)."""
+        raise NotImplementedError(f"family {self.name!r} has no evolution phases")
+
+    def selected_data(
+        self, task: Any, generated: Trajectories, judgement: Judgement, generator: dict[str, Any]
+    ) -> Trajectories:
+        """The kept executed trajectories as a dataset (``generator``: metadata of how they were made)."""
+        raise NotImplementedError(f"family {self.name!r} has no evolution phases")
+
 
 @dataclass(frozen=True)
 class TaskFiles:
@@ -126,6 +160,8 @@ class TaskFiles:
 
     root: Path
     task: str
+    #: the model folder in use (``models/<task>/phase<k>``, relative to ``root``); None = the phase-0 model
+    model: Path | None = None
 
     @property
     def dataset(self) -> Path:
@@ -135,9 +171,10 @@ class TaskFiles:
 
     @property
     def value(self) -> Path:
+        """The value function beside the model in use (fine-tuning carries phase 0's into every later model)."""
         from adaptdiffuser.stages.common import value_dir
 
-        return self.root / value_dir(self.task)
+        return self.root / self.model / "value" if self.model is not None else self.root / value_dir(self.task)
 
     @property
     def collect(self) -> Path:

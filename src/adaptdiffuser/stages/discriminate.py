@@ -3,17 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import asdict
-from functools import partial
 from pathlib import Path
 
 import mlflow
 
 from adaptdiffuser.config import Params
 from adaptdiffuser.data.schema import read_trajectories, write_trajectories
-from adaptdiffuser.evolution.discriminator import NothingSelectedError, discriminate
-from adaptdiffuser.evolution.generate import split_task_trajectories, task_trajectories
-from adaptdiffuser.families.maze2d.execution import PlanFollower
-from adaptdiffuser.families.maze2d.selection import picks_coin_then_reaches_goal
+from adaptdiffuser.evolution.discriminator import NothingSelectedError
+from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.io import write_json
 from adaptdiffuser.plots import save_discriminator_histograms
@@ -45,20 +42,9 @@ def run_discriminate(params: Params, task_name: str, root: Path, phase: int, pro
         },
     }
     with stage_run(task.name, "discriminate", phase, logged, root):
-        states, actions, tasks = split_task_trajectories(generated)
-        family = get_family(task.family)  # the maze family: only it has evolution phases so far
-        judgement = discriminate(
-            family.make_simulator(task),
-            states,
-            actions,
-            tasks.goals,
-            cfg,
-            family.selection_rule(task, cfg),
-            PlanFollower,
-            coins=tasks.coins,
-            coin_check=partial(picks_coin_then_reaches_goal, radius=task.settings.gold_coin.radius),
-            progress=progress,
-        )
+        family = get_family(task.family)
+        files = TaskFiles(root, task.name)
+        judgement = family.discriminate(task, generated, cfg, phase, files, progress)
         report = judgement.report()
         mlflow.log_metrics({f"discriminator.{k}": float(v) for k, v in report.items()})
         picture = root / discriminator_plot_path(task.name, phase)
@@ -73,14 +59,13 @@ def run_discriminate(params: Params, task_name: str, root: Path, phase: int, pro
                 f"{report['rejected_reward']} failed the {cfg.rule!r} rule); not fine-tuning on nothing. "
                 "Loosen evolution.discriminate (max_error, rule: quantile) or generate more tasks."
             )
-        kept = [judgement.trajectories[i] for i in judgement.kept]
         generator = {
             "stage": "discriminate",
             "phase": phase,
             "source": str(generated_path(task.name, phase)),
             **asdict(cfg),
         }
-        selected = task_trajectories(kept, tasks, judgement.kept, task.name, generator)
+        selected = family.selected_data(task, generated, judgement, generator)
         out = root / selected_path(task.name, phase)
         write_trajectories(out, selected)
         write_json(root / discriminator_metrics_path(task.name, phase), report)

@@ -62,7 +62,7 @@ def run_evaluate(
     }
     name = phase_name(phase, control)
     with stage_run(task.name, "evaluate-control" if control else "evaluate", phase, logged, root):
-        files = TaskFiles(root, task.name)
+        files = TaskFiles(root, task.name, model)
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
         controller = family.controller(task, planner, files, device)
         result = run_episodes(

@@ -29,6 +29,11 @@ def run_evaluate_coin(
     """Plan each fixed coin case once, guided toward its coin with scale ``alpha``, follow the plan for a whole
     episode, and score pick / goal / both rates, plan collisions and the navigation score."""
     task = params.resolve(task_name)
+    if task.name not in params.coin_tasks:  # evaluate-coin@phase<k> follows `evolve`, whatever its family
+        skipped = {"n_episodes": 0, "skipped": f"{task.name} is not in coin_tasks (no gold-coin variant)"}
+        write_json(root / coin_metrics_path(task.name, phase), skipped)
+        (root / coin_plots_dir(task.name, phase)).mkdir(parents=True, exist_ok=True)  # the stage's declared output
+        return skipped
     family = get_family(task.family)
     ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
     bundle = load_bundle(root / model_dir(task.name, phase), device)

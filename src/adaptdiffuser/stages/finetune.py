@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from adaptdiffuser.checkpoint import load_bundle, save_bundle
 from adaptdiffuser.config import Params, PretrainParams, TaskParams
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
+from adaptdiffuser.io import atomic_dir
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.stages.common import file_digest, model_dir, phase_name, selected_path
@@ -90,6 +92,9 @@ def run_finetune(
         }
         out = root / model_dir(task.name, phase, control)
         save_bundle(out, bundle)
+        if (root / source / "value").is_dir():  # the planner's value function travels with the model (not retrained)
+            with atomic_dir(out / "value") as tmp:
+                shutil.copytree(root / source / "value", tmp, dirs_exist_ok=True)
         save_loss_curve(history, out / "train_loss.png")
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")
         resume.unlink(missing_ok=True)

@@ -87,6 +87,24 @@ class LocomotionFamily(Family):
         guidance = ValueGuidance(value_net, g.scale, g.n_guide_steps, g.t_stopgrad, g.scale_grad_by_std)
         return ValuePlanningController(planner, guidance, g.n_samples, task.evaluate.seed)
 
+    def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
+        """Value-guided segments from dataset states and fresh resets (``alpha`` guides maze coins only: unused)."""
+        from adaptdiffuser.families.locomotion.evolution import generate_segments
+
+        return generate_segments(self.make_simulator(task), task, planner, files, cfg, seed, generator, progress)
+
+    def discriminate(self, task, generated, cfg, phase, files, progress):
+        """Execute each segment's actions from its start state; reject falls and drift; select by real reward."""
+        from adaptdiffuser.families.locomotion.evolution import judge_segments
+
+        dataset = read_trajectories(files.dataset)
+        return judge_segments(self.make_simulator(task), task, generated, dataset, cfg, phase, progress)
+
+    def selected_data(self, task, generated, judgement, generator):
+        from adaptdiffuser.families.locomotion.evolution import selected_segments
+
+        return selected_segments(self.make_simulator(task), task, judgement, generator)
+
     def episode_metrics(self, result: EpisodeBatchResult) -> dict[str, float]:
         return {
             "length_mean": float(np.mean(result.lengths)),

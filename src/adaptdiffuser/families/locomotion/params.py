@@ -20,6 +20,19 @@ ENV_IDS: dict[str, str] = {"hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "ha
 #: dataset kinds of a task name (``hopper-medium-replay`` -> ``medium-replay``)
 DATASET_KINDS: tuple[str, ...] = ("medium", "medium-replay", "medium-expert")
 
+#: the paper's reward-discriminator thresholds (appendix table; phase 1, phase 2), on a 1000-step return scale
+PAPER_THRESHOLDS: dict[str, tuple[float, float]] = {
+    "halfcheetah-medium-expert": (10840, 10867),
+    "hopper-medium-expert": (3639, 3681),
+    "walker2d-medium-expert": (4900, 4950),
+    "halfcheetah-medium": (5005, 5150),
+    "hopper-medium": (3211, 3225),
+    "walker2d-medium": (3700, 3843),
+    "halfcheetah-medium-replay": (4600, 4800),
+    "hopper-medium-replay": (3100, 3136),
+    "walker2d-medium-replay": (3900, 3920),
+}
+
 
 def parse_task_name(name: str) -> tuple[str, str]:
     """``hopper-medium-replay`` -> ``("Hopper-v5", "medium-replay")``; ``ValueError`` for an unknown name."""
@@ -95,11 +108,20 @@ class PlannerSettings(BaseModel):
     scale_grad_by_std: bool = True
 
 
+class EvolutionSettings(BaseModel):
+    """Where a locomotion task's evolution phases start their generated segments."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    #: share of generated segments starting from a fresh reset; the rest start from dataset states (qpos, qvel)
+    reset_fraction: float = Field(0.5, ge=0.0, le=1.0)
+
+
 class LocomotionTaskParams(BaseModel):
     """A locomotion task named ``<robot>-<dataset>`` (``hopper-medium``, ``walker2d-medium-replay``...)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
-    OPTIONAL_STAGES: ClassVar[tuple[str, ...]] = ()
+    OPTIONAL_STAGES: ClassVar[tuple[str, ...]] = ("evolve",)
 
     family: Literal["locomotion"] = "locomotion"
     #: evaluation episodes end after this many steps or on termination (D4RL: 1000)
@@ -108,6 +130,7 @@ class LocomotionTaskParams(BaseModel):
     value: ValueSettings = Field(default_factory=ValueSettings)
     value_model: ValueModelSettings = Field(default_factory=lambda: ValueModelSettings())
     guide: PlannerSettings = Field(default_factory=PlannerSettings)
+    evolution: EvolutionSettings = Field(default_factory=EvolutionSettings)
 
     def check_name(self, name: str) -> None:
         """The name says the robot and the dataset, like ``walker2d-medium-replay``."""
@@ -122,6 +145,20 @@ class LocomotionTaskParams(BaseModel):
         h = task.diffusion.horizon
         if self.episode_steps < h:
             raise ConfigError(f"{where}.episode_steps: {self.episode_steps} is shorter than diffusion.horizon={h}")
+        if params.evolve != task.name:
+            return
+        for phase in params.phases:
+            d = phase.discriminate
+            if not d.tracking:
+                raise ConfigError(
+                    f"phases.{phase.name}.discriminate.tracking: locomotion segments are judged by executing them; "
+                    "it must be true"
+                )
+            if d.rule == "paper" and task.name not in PAPER_THRESHOLDS:
+                raise ConfigError(
+                    f"phases.{phase.name}.discriminate.rule: the paper has no threshold for {task.name}; "
+                    "use quantile or top_k"
+                )
 
 
 class ValueModelSettings(BaseModel):

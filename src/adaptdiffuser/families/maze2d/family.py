@@ -114,6 +114,25 @@ class Maze2DFamily(Family):
             return PAPER_MAZE_RULES[task.settings.env.maze]
         return generic_selection_rule(cfg)
 
+    def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
+        """Plans for random (start, goal) cells, ``cfg.coin_fraction`` of them guided toward a coin (``alpha``)."""
+        from adaptdiffuser.families.maze2d.evolution import generate_navigation_data
+
+        env = self.make_simulator(task)
+        return generate_navigation_data(env, task, planner, cfg, alpha, seed, generator, progress)
+
+    def discriminate(self, task, generated, cfg, phase, files, progress):
+        """Follow every plan with the PD follower; the paper's rule (or a generic one) on real reward and length."""
+        from adaptdiffuser.families.maze2d.evolution import judge_navigation_data
+
+        env = self.make_simulator(task)
+        return judge_navigation_data(env, task, generated, cfg, self.selection_rule(task, cfg), progress)
+
+    def selected_data(self, task, generated, judgement, generator):
+        from adaptdiffuser.families.maze2d.evolution import selected_navigation_data
+
+        return selected_navigation_data(task, generated, judgement, generator)
+
     def episode_columns(self, result: EpisodeBatchResult) -> dict[str, list[Any]]:
         return {
             "start_x": [s[0] for s in result.starts],
