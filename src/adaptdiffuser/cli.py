@@ -189,9 +189,8 @@ def generate(
     p = _params(params)
     name = _task(p, task, evolution=True)
     stats = _guarded(lambda: run_generate(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
-    typer.echo(
-        f"phase {phase}: generated {stats['generated']} plans (planned reach rate {stats['planned_reach_rate']:.2f})"
-    )
+    details = ", ".join(f"{key} {value:.3g}" for key, value in stats.items() if key != "generated")
+    typer.echo(f"phase {phase}: generated {stats['generated']} plans ({details})")
 
 
 @app.command()
@@ -210,6 +209,18 @@ def discriminate(
     )
 
 
+def _train_phase(phase: int, params: Path, task: str | None, device: str, progress: bool, control: bool) -> None:
+    """The body of ``finetune`` and ``control``: they differ only in the data (``control``: expert only)."""
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.finetune import run_finetune
+
+    p = _params(params)
+    name = _task(p, task, evolution=True)
+    dev = resolve_device(device)
+    out = _guarded(lambda: run_finetune(p, name, Path.cwd(), phase, dev, progress=progress, control=control))
+    typer.echo(f"wrote {out}")
+
+
 @app.command()
 def finetune(
     phase: EvolutionPhase,
@@ -219,13 +230,7 @@ def finetune(
     progress: Progress = True,
 ) -> None:
     """Fine-tune phase k-1's model on expert plus selected data into models/<task>/phase<k>."""
-    from adaptdiffuser.stages.common import resolve_device
-    from adaptdiffuser.stages.finetune import run_finetune
-
-    p = _params(params)
-    name = _task(p, task, evolution=True)
-    out = _guarded(lambda: run_finetune(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
-    typer.echo(f"wrote {out}")
+    _train_phase(phase, params, task, device, progress, control=False)
 
 
 @app.command()
@@ -238,14 +243,7 @@ def control(
 ) -> None:
     """Phase k's equal-compute control: phase k-1's model trained as finetune@phase<k> does (same steps, seed and
     settings) on expert data only, into models/<task>/phase<k>-control."""
-    from adaptdiffuser.stages.common import resolve_device
-    from adaptdiffuser.stages.finetune import run_finetune
-
-    p = _params(params)
-    name = _task(p, task, evolution=True)
-    dev = resolve_device(device)
-    out = _guarded(lambda: run_finetune(p, name, Path.cwd(), phase, dev, progress=progress, control=True))
-    typer.echo(f"wrote {out}")
+    _train_phase(phase, params, task, device, progress, control=True)
 
 
 @app.command()
