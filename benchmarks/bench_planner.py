@@ -47,7 +47,7 @@ def main() -> None:
 
     device = resolve_device(args.device)
     env = make_env()
-    model_path = model_dir(params.name, 0)
+    model_path = model_dir(params.name, 0, 0)
     if model_path.exists():
         bundle = load_bundle(model_path, device)
         source = f"trained {model_path}"

@@ -40,10 +40,10 @@ def main() -> None:
     family = get_family(task.family)
     device = resolve_device(args.device)
     sim = family.make_simulator(task)
-    if model_dir(task.name, 0).exists() and value_dir(task.name).exists():
-        bundle = load_bundle(model_dir(task.name, 0), device)
-        value_net, _ = load_value(value_dir(task.name), device)
-        source = f"trained {model_dir(task.name, 0)} and its value function"
+    if model_dir(task.name, 0, 0).exists() and value_dir(task.name, 0).exists():
+        bundle = load_bundle(model_dir(task.name, 0, 0), device)
+        value_net, _ = load_value(value_dir(task.name, 0), device)
+        source = f"trained {model_dir(task.name, 0, 0)} and its value function"
     else:
         dim = sim.obs_dim + sim.act_dim
         bundle = make_bundle(task.model, task.diffusion, sim.obs_dim, sim.act_dim,

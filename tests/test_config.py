@@ -98,6 +98,7 @@ def test_profile_list() -> None:
         "smoke",
         "quick-locomotion",
         "paper-locomotion",
+        "science",
         *PAPER,
     }
 
@@ -131,13 +132,14 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         for name in ("walker2d-medium-replay", "halfcheetah-medium-expert"):  # stages run by tests, not DVC
             assert params.resolve(name).family == "locomotion" and name not in params.tasks
     if profile == "quick-locomotion":
-        # `phases: {}` and `coin_tasks: []` replace the quick profile's (an empty mapping is not merged)
-        assert params.tasks == ("hopper-medium",) and params.coin_tasks == () and params.evolve is None
-        assert params.phases == () and params.phase_names == []
+        # `coin_tasks: []` replaces the quick profile's (an empty list is not merged)
+        assert params.tasks == ("hopper-medium",) and params.coin_tasks == () and params.evolve == "hopper-medium"
+        assert params.phase_names == ["phase1", "phase2"] and params.phase(1).generate.sampler == "ddpm"
         hopper = params.resolve("hopper-medium")
         assert hopper.family == "locomotion" and hopper.diffusion.horizon == 32
     if profile == "paper-locomotion":
-        assert len(params.tasks) == 9 and params.coin_tasks == () and params.evolve is None and params.phases == ()
+        assert len(params.tasks) == 9 and params.coin_tasks == () and params.evolve == "hopper-medium"
+        assert params.phase_names == ["phase1", "phase2"] and params.phase(1).discriminate.rule == "paper"
         assert {params.resolve(name).family for name in params.tasks} == {"locomotion"}
         assert (
             params.resolve("hopper-medium").model.dim == 32 and params.resolve("hopper-medium").diffusion.horizon == 32
@@ -293,7 +295,13 @@ REJECTED = [
     (umaze(collect={"steps": 1.5}), f"{T}.collect.steps", "must be an integer, got 1.5"),
     ({"model": {"dim_mults": []}}, "model.dim_mults", "non-empty list of positive integers"),
     ({"sweep": {"trials": 0}}, "sweep.trials", "must be > 0"),
-    ({"sweep": {"objective": "speed"}}, "sweep.objective", "must be one of 'navigation', 'coin', 'mix'"),
+    ({"sweep": {"objective": "speed"}}, "sweep.objective", "must be one of 'gain', 'score', 'coin', 'mix'"),
+    ({"sweep": {"evaluate_seed": 1000}}, "sweep.evaluate_seed", "must not be tuned on the episodes"),
+    ({"sweep": {"task": "maze2d-large"}}, "sweep.task", "must be one of tasks"),
+    ({"seeds": []}, "seeds", "needs at least one training seed"),
+    ({"seeds": [0, 1, 0]}, "seeds", "lists a seed twice"),
+    ({"seeds": [-2]}, "seeds[0]", "must be >= 0, got -2"),
+    ({"seeds": 3}, "seeds", "must be a list"),
     ({"sweep": {"space": {"alpha": {"low": NAN, "high": 1.0}}}}, "sweep.space.alpha.low", "finite"),
     ({"sweep": {"space": {"alpha": {"lo": 1.0, "high": 2.0}}}}, "sweep.space.alpha", "unknown field 'lo'"),
     ({"sweep": {"space": {"alpha": 3}}}, "sweep.space.alpha", "must be a mapping"),
@@ -582,6 +590,37 @@ def test_cli_profile_writes_params(tmp_path: Path) -> None:
     assert load_params(out).evolved.settings.env.maze == "medium"
     result = CliRunner().invoke(app, ["profile", "nope", "--params", str(out), "--profiles-dir", str(PROFILES)])
     assert result.exit_code == 2 and "unknown profile" in result.output
+
+
+def test_cli_set_validates_and_keeps_the_rest_of_the_file(tmp_path: Path) -> None:
+    out = tmp_path / "params.yaml"
+    out.write_text((REPO / "params.yaml").read_text())
+    result = CliRunner().invoke(app, ["set", "seeds=[0, 1, 2]", "--params", str(out)])
+    assert result.exit_code == 0, result.output
+    assert load_params(out).seeds == (0, 1, 2) and "# guidance scale toward the gold coin" in out.read_text()
+    before = out.read_text()
+    for bad, message in (("seeds=[1, 1]", "lists a seed twice"), ("evolve=nowhere", "evolve"), ("seeds", "key=value")):
+        result = CliRunner().invoke(app, ["set", bad, "--params", str(out)])
+        assert result.exit_code == 2 and message in result.output, result.output
+    assert out.read_text() == before  # a rejected value leaves the file as it was
+
+
+def apply_and_load(profile: str, tmp_path: Path) -> Params:
+    return load_params(apply_profile(profile, PROFILES, tmp_path / "params.yaml"))
+
+
+def test_a_locomotion_task_with_phases_describes_its_coin_stages(tmp_path: Path) -> None:
+    """``check`` on a locomotion task with phases: its coin stages are named as skipped (no gold-coin task)."""
+    p = apply_and_load("quick-locomotion", tmp_path)
+    lines = describe(p)
+    assert "  evaluate-coin@phase1: skipped (hopper-medium has no gold-coin task)" in lines
+    assert p.evolve == "hopper-medium" and p.phase(2).discriminate.rule == "paper"
+
+
+def test_science_profile_runs_both_tasks_on_three_seeds(tmp_path: Path) -> None:
+    p = apply_and_load("science", tmp_path)
+    assert p.tasks == ("maze2d-umaze", "hopper-medium") and p.seeds == (0, 1, 2)
+    assert p.resolve("hopper-medium").family == "locomotion" and len(p.phases) == 2
 
 
 def test_exponent_without_dot_is_a_number(tmp_path: Path) -> None:

@@ -62,8 +62,8 @@ def phase1_root(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Params]
 
 def test_generated_file_holds_one_plan_per_task(phase1_root: tuple[Path, Params]) -> None:
     root, params = phase1_root
-    generated = read_trajectories(root / generated_path(TASK, 1))
-    assert generated_path(TASK, 1) == Path(f"data/{TASK}/phase1/generated.parquet")
+    generated = read_trajectories(root / generated_path(TASK, 1, 0))
+    assert generated_path(TASK, 1, 0) == Path(f"data/{TASK}/phase1/generated/seed0.parquet")
     assert generated.metadata["source"] == "synthetic" and generated.metadata["env"] == TASK
     assert len(generated.episodes()) == params.phase(1).generate.tasks
     assert len(generated) == params.phase(1).generate.tasks * params.resolve(TASK).diffusion.horizon
@@ -75,20 +75,21 @@ def test_generated_file_holds_one_plan_per_task(phase1_root: tuple[Path, Params]
 
 def test_selected_file_and_report(phase1_root: tuple[Path, Params]) -> None:
     root, params = phase1_root
-    selected = read_trajectories(root / selected_path(TASK, 1))
+    selected = read_trajectories(root / selected_path(TASK, 1, 0))
     report = json.loads((root / discriminator_metrics_path(TASK, 1)).read_text())
+    assert report["n_seeds"] == 1 and report["seeds"]["0"]["kept"] == report["kept"]
     assert report["kept"] == len(selected.episodes()) >= 1
     assert report["generated"] == params.phase(1).generate.tasks
     assert report["kept"] + report["rejected_tracking"] + report["rejected_reward"] == report["generated"]
-    assert (root / discriminator_plot_path(TASK, 1)).read_bytes()[:4] == b"\x89PNG"
+    assert (root / discriminator_plot_path(TASK, 1, 0)).read_bytes()[:4] == b"\x89PNG"
 
 
 def test_finetuned_model_loads_keeps_the_normalizer_and_plans(phase1_root: tuple[Path, Params]) -> None:
     root, params = phase1_root
     task = params.resolve(TASK)
-    assert model_dir(TASK, 1) == Path(f"models/{TASK}/phase1")
-    phase0 = load_bundle(root / model_dir(TASK, 0))
-    phase1 = load_bundle(root / model_dir(TASK, 1))
+    assert model_dir(TASK, 1, 0) == Path(f"models/{TASK}/phase1/seed0")
+    phase0 = load_bundle(root / model_dir(TASK, 0, 0))
+    phase1 = load_bundle(root / model_dir(TASK, 1, 0))
     assert phase1.config["phase"] == 1 and phase1.config["previous"] == 0
     assert phase1.normalizer.state_dict() == phase0.normalizer.state_dict()
     assert set(phase1.config["data"]["synthetic"]) == {"phase1"}
@@ -103,16 +104,16 @@ def test_finetuned_model_loads_keeps_the_normalizer_and_plans(phase1_root: tuple
     assert plan.shape == (2, task.diffusion.horizon, 6) and np.isfinite(plan).all()
     np.testing.assert_allclose(plan[:, 0, 2:], starts, atol=1e-4)
     np.testing.assert_allclose(plan[:, -1, 2:], goals, atol=1e-4)
-    assert finetune_config(params, task, 1).steps == max(1, round(0.25 * task.pretrain.steps))
+    assert finetune_config(params, task, 1, 0).steps == max(1, round(0.25 * task.pretrain.steps))
 
 
 def test_nothing_selected_stops_plainly_and_writes_no_dataset(phase1_root: tuple[Path, Params], tmp_path: Path) -> None:
     root, params = phase1_root
     strict = _with_phase1(params, max_error=1e-9)
-    before = (root / selected_path(TASK, 1)).read_bytes()
+    before = (root / selected_path(TASK, 1, 0)).read_bytes()
     with pytest.raises(NothingSelectedError, match="kept none of 16 generated trajectories"):
         run_discriminate(strict, TASK, root, 1, progress=False)
-    assert (root / selected_path(TASK, 1)).read_bytes() == before  # the earlier output is untouched
+    assert (root / selected_path(TASK, 1, 0)).read_bytes() == before  # the earlier output is untouched
 
 
 def _with_finetune(params: Params, **finetune: object) -> Params:
@@ -126,10 +127,10 @@ def test_control_differs_from_its_phase_only_in_the_data(phase1_root: tuple[Path
     batch expert in the phase too, the two models are the same weights."""
     root, params = phase1_root
     out = run_finetune(params, TASK, root, 1, CPU, progress=False, control=True)
-    assert out == root / model_dir(TASK, 1, control=True) == root / f"models/{TASK}/phase1-control"
-    control = load_bundle(out)
+    assert out / "seed0" == root / model_dir(TASK, 1, 0, control=True) == root / f"models/{TASK}/phase1-control/seed0"
+    control = load_bundle(out / "seed0")
     assert control.config["control"] is True and control.config["data"]["synthetic"] == {}
-    evolved = load_bundle(root / model_dir(TASK, 1))
+    evolved = load_bundle(root / model_dir(TASK, 1, 0))
     pairs = zip(control.diffusion.parameters(), evolved.diffusion.parameters(), strict=True)
     assert not all(torch.equal(a, b) for a, b in pairs)  # (smoke fine-tuning is shorter than one EMA update)
 
@@ -138,15 +139,15 @@ def test_control_differs_from_its_phase_only_in_the_data(phase1_root: tuple[Path
     copy = tmp_path / "project"
     (copy / "models" / TASK).mkdir(parents=True)
     (copy / "data").symlink_to(root / "data")
-    (copy / model_dir(TASK, 0)).symlink_to(root / model_dir(TASK, 0))
-    a = load_bundle(run_finetune(expert_only, TASK, copy, 1, CPU, progress=False))
-    b = load_bundle(run_finetune(expert_only, TASK, copy, 1, CPU, progress=False, control=True))
+    (copy / "models" / TASK / "phase0").symlink_to(root / "models" / TASK / "phase0")
+    a = load_bundle(run_finetune(expert_only, TASK, copy, 1, CPU, progress=False) / "seed0")
+    b = load_bundle(run_finetune(expert_only, TASK, copy, 1, CPU, progress=False, control=True) / "seed0")
     assert all(torch.equal(x, y) for x, y in zip(a.diffusion.parameters(), b.diffusion.parameters(), strict=True))
 
 
 def test_control_evaluation_reports_the_paired_gain(phase1_root: tuple[Path, Params]) -> None:
     root, params = phase1_root
-    if not (root / model_dir(TASK, 1, control=True)).exists():
+    if not (root / model_dir(TASK, 1, 0, control=True)).exists():
         run_finetune(params, TASK, root, 1, CPU, progress=False, control=True)
     run_reference(params, TASK, root, progress=False)
     with pytest.raises(FileNotFoundError, match="phase 1's evaluation, needed for the gain"):
@@ -155,5 +156,6 @@ def test_control_evaluation_reports_the_paired_gain(phase1_root: tuple[Path, Par
     control = run_evaluate(params, TASK, root, 1, CPU, progress=False, control=True)
     assert control["gain_mean"] == pytest.approx(evolved["score_mean"] - control["score_mean"])
     assert control["gain_n_episodes"] == evolved["n_episodes"] and control["gain_stderr"] >= 0.0
+    assert control["n_seeds"] == 1 and control["stderr_over"] == "episodes"  # one training seed
     assert json.loads((root / phase_metrics_path(TASK, 1, control=True)).read_text()) == control
-    assert (root / results_dir(TASK, 1, control=True) / "episodes.parquet").exists()
+    assert (root / results_dir(TASK, 1, 0, control=True) / "episodes.parquet").exists()

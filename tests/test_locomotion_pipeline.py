@@ -81,13 +81,14 @@ def test_locomotion_baseline_stages(tmp_path: Path, name: str, state_dim: int, t
     assert json.loads((tmp_path / reference_path(name)).read_text())["r_max"] > ref["r_min"]
 
     run_pretrain(params, name, tmp_path, device, progress=False)
-    bundle = load_bundle(tmp_path / model_dir(name, 0))
+    bundle = load_bundle(tmp_path / model_dir(name, 0, 0))
     assert bundle.config["conditioning"] == "start" and bundle.normalizer.kind == "gaussian"
-    assert (tmp_path / model_dir(name, 0) / "value" / "value.pt").exists()
+    assert (tmp_path / model_dir(name, 0, 0) / "value" / "value.pt").exists()
 
     metrics = run_evaluate(params, name, tmp_path, 0, device, progress=False)
     assert metrics["n_episodes"] == 2 and json.loads((tmp_path / phase_metrics_path(name, 0)).read_text()) == metrics
-    table = pq.read_table(tmp_path / results_dir(name, 0) / "episodes.parquet").to_pydict()
+    assert metrics["seeds"]["0"]["score_mean"] == metrics["score_mean"]
+    table = pq.read_table(tmp_path / results_dir(name, 0, 0) / "episodes.parquet").to_pydict()
     assert all(1 <= length <= steps for length in table["length"])
     if not terminates:  # HalfCheetah never falls: every episode runs its full length
         assert table["length"] == [steps, steps] and metrics["terminated_rate"] == 0.0
@@ -107,16 +108,16 @@ def test_locomotion_evolution_phase(tmp_path: Path) -> None:
     device = torch.device("cpu")
     run_collect(params, name, tmp_path, progress=False)
     run_pretrain(params, name, tmp_path, device, progress=False)
-    stats = run_generate(params, name, tmp_path, 1, device, progress=False)
+    stats = run_generate(params, name, tmp_path, 1, device, progress=False)[0]
     g = params.phase(1).generate
     assert stats["generated"] == g.tasks and stats["from_dataset"] == g.tasks // 2
-    generated = read_trajectories(tmp_path / generated_path(name, 1))
+    generated = read_trajectories(tmp_path / generated_path(name, 1, 0))
     horizon = params.resolve(name).diffusion.horizon
     assert len(generated) == g.tasks * horizon and generated.extra["task_start_state"].shape == (len(generated), 12)
 
     report = run_discriminate(params, name, tmp_path, 1, progress=False)
     assert report["generated"] == g.tasks and report["kept"] >= 1
-    selected = read_trajectories(tmp_path / selected_path(name, 1))
+    selected = read_trajectories(tmp_path / selected_path(name, 1, 0))
     assert selected.sim_state is not None and not selected.terminal.any()
     # the kept rows are what the simulator did: replaying each segment's actions from its first state reproduces them
     sim = get_family("locomotion").make_simulator(params.resolve(name))
@@ -130,7 +131,7 @@ def test_locomotion_evolution_phase(tmp_path: Path) -> None:
     run_finetune(params, name, tmp_path, 1, device, progress=False)
     run_finetune(params, name, tmp_path, 1, device, progress=False, control=True)
     for control in (False, True):  # the value function travels with every model
-        assert (tmp_path / model_dir(name, 1, control) / "value" / "value.pt").exists()
+        assert (tmp_path / model_dir(name, 1, 0, control) / "value" / "value.pt").exists()
     run_reference(params, name, tmp_path, progress=False)
     run_evaluate(params, name, tmp_path, 1, device, progress=False)
     gain = run_evaluate(params, name, tmp_path, 1, device, progress=False, control=True)

@@ -76,7 +76,7 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
     traj = read_trajectories(smoke_repo / f"data/{MAZE}/dataset.parquet")
     assert len(traj) == 4000 and traj.metadata["source"] == "expert" and traj.metadata["env"] == MAZE
 
-    bundle = load_bundle(smoke_repo / f"models/{MAZE}/phase0")
+    bundle = load_bundle(smoke_repo / f"models/{MAZE}/phase0/seed0")
     assert bundle.config["phase"] == 0 and bundle.config["diffusion"]["horizon"] == 32
     assert bundle.config["conditioning"] == "start_goal" and bundle.normalizer.kind == "minmax"
 
@@ -101,13 +101,14 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
         assert control["n_episodes"] == 3 and "gain_mean" not in control
         # the gain is paired over the same episodes: its mean is the difference of the two means
         assert entry["gain_mean"] == pytest.approx(entry["score_mean"] - control["score_mean"])
-        assert entry["gain_stderr"] >= 0.0
-        control_model = load_bundle(smoke_repo / f"models/{MAZE}/phase{k}-control")
+        assert entry["gain_stderr"] >= 0.0 and entry["stderr_over"] == "episodes" and entry["n_seeds"] == 1
+        assert entry["per_seed"]["0"]["gain_mean"] == entry["gain_mean"]
+        control_model = load_bundle(smoke_repo / f"models/{MAZE}/phase{k}-control/seed0")
         assert control_model.config["control"] is True and control_model.config["data"]["synthetic"] == {}
-        assert load_bundle(smoke_repo / f"models/{MAZE}/phase{k}").config["previous"] == k - 1
-        selected = read_trajectories(smoke_repo / f"data/{MAZE}/phase{k}/selected.parquet")
+        assert load_bundle(smoke_repo / f"models/{MAZE}/phase{k}/seed0").config["previous"] == k - 1
+        selected = read_trajectories(smoke_repo / f"data/{MAZE}/phase{k}/selected/seed0.parquet")
         assert len(selected.episodes()) == disc["kept"]
-        assert (smoke_repo / f"plots/{MAZE}/discriminator/phase{k}.png").read_bytes()[:4] == b"\x89PNG"
+        assert (smoke_repo / f"plots/{MAZE}/discriminator/phase{k}/seed0.png").read_bytes()[:4] == b"\x89PNG"
     table = (smoke_repo / f"metrics/report/{MAZE}/score_by_phase.csv").read_text().splitlines()
     assert table[0].startswith("phase,score_mean,score_stderr,control_score_mean,control_score_stderr,gain_mean")
     assert [r.split(",")[0] for r in table[1:]] == ["0", "1", "2"]
@@ -116,9 +117,9 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
 
     ref = json.loads((smoke_repo / f"metrics/tasks/{MAZE}/reference.json").read_text())
     assert ref["r_max"] > ref["r_min"]
-    pictures = sorted((smoke_repo / f"plots/{MAZE}/phase0").glob("*.png"))
+    pictures = sorted((smoke_repo / f"plots/{MAZE}/phase0/seed0").glob("*.png"))
     assert len(pictures) == 1 and pictures[0].read_bytes()[:4] == b"\x89PNG"
-    assert (smoke_repo / f"results/{MAZE}/phase0/episodes.parquet").exists()
+    assert (smoke_repo / f"results/{MAZE}/phase0/seed0/episodes.parquet").exists()
 
     shown = _run(["dvc", "metrics", "show", "--json"], smoke_repo)
     assert "score_mean" in shown
@@ -131,10 +132,10 @@ def test_repro_runs_the_locomotion_baseline(smoke_repo: Path) -> None:
     traj = read_trajectories(smoke_repo / f"data/{HOPPER}/dataset.parquet")
     assert len(traj) == 2000 and traj.sim_state is not None and traj.metadata["state_dim"] == 12
     assert (smoke_repo / f"models/{HOPPER}/collect/medium.zip").exists()
-    bundle = load_bundle(smoke_repo / f"models/{HOPPER}/phase0")
+    bundle = load_bundle(smoke_repo / f"models/{HOPPER}/phase0/seed0")
     assert bundle.config["conditioning"] == "start" and bundle.normalizer.kind == "gaussian"
     assert bundle.config["diffusion"]["horizon"] == 16 and bundle.config["diffusion"]["action_weight"] == 10.0
-    assert (smoke_repo / f"models/{HOPPER}/phase0/value/value.pt").exists()
+    assert (smoke_repo / f"models/{HOPPER}/phase0/seed0/value/value.pt").exists()
     ref = json.loads((smoke_repo / f"metrics/tasks/{HOPPER}/reference.json").read_text())
     assert (ref["r_min"], ref["r_max"]) == (-20.272305, 3234.3)
     assert {"random_score_mean", "behaviour_score_mean", "dataset"} <= set(ref)
@@ -144,8 +145,8 @@ def test_repro_runs_the_locomotion_baseline(smoke_repo: Path) -> None:
     phase0 = summary["phase_0"]
     assert phase0["n_episodes"] == 2 and 1 <= phase0["length_mean"] <= 40
     assert 0.0 <= phase0["terminated_rate"] <= 1.0
-    episodes = (smoke_repo / f"results/{HOPPER}/phase0/episodes.parquet").exists()
-    assert episodes and (smoke_repo / f"plots/{HOPPER}/phase0/plan_00.png").read_bytes()[:4] == b"\x89PNG"
+    episodes = (smoke_repo / f"results/{HOPPER}/phase0/seed0/episodes.parquet").exists()
+    assert episodes and (smoke_repo / f"plots/{HOPPER}/phase0/seed0/plan_00.png").read_bytes()[:4] == b"\x89PNG"
 
 
 @pytest.mark.e2e
@@ -166,6 +167,8 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     } | {(stage, str(k)) for k in (1, 2) for stage in PHASE_STAGES}
     for run in runs:
         assert run.info.status == "FINISHED" and len(run.data.tags["git_commit"]) == 40
+        if run.data.tags["stage"] not in ("collect", "reference"):  # one run per training seed
+            assert run.data.tags["seed"] == "0" and run.info.run_name.endswith("-seed0")
     pretrain = by_stage["pretrain", "0"]
     assert pretrain.data.params["pretrain.steps"] == "20"
     losses = client.get_metric_history(pretrain.info.run_id, "train_loss")
@@ -183,11 +186,11 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     finetune = by_stage["finetune", "2"]
     for name in ("expert", "synthetic.phase1", "synthetic.phase2"):
         assert len(finetune.data.params[f"data.{name}.sha256"]) == 64
-    assert finetune.data.params["model.path"] == f"models/{MAZE}/phase1"
+    assert finetune.data.params["model.path"] == f"models/{MAZE}/phase1/seed0"
     assert [m.step for m in client.get_metric_history(finetune.info.run_id, "train_loss")] == [5]
     # the control of phase 2: the same start model, steps and seed, expert data only
     control = by_stage["control", "2"]
-    assert control.data.params["model.path"] == f"models/{MAZE}/phase1"
+    assert control.data.params["model.path"] == f"models/{MAZE}/phase1/seed0"
     assert "data.synthetic.phase1.sha256" not in control.data.params
     for key in ("train.steps", "train.seed", "data.expert.sha256"):
         assert control.data.params[key] == finetune.data.params[key]

@@ -19,11 +19,19 @@ import torch
 import yaml
 from mlflow.tracking import MlflowClient
 
-from adaptdiffuser.config import ConfigError, apply_profile, load_params
+from adaptdiffuser.config import ConfigError, apply_profile, load_params, params_from_dict
 from adaptdiffuser.stages.collect import run_collect
+from adaptdiffuser.stages.common import model_dir
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
-from adaptdiffuser.sweep import _fail_trials_of_dead_workers, apply_best, make_storage, reproduce_command
+from adaptdiffuser.sweep import (
+    _fail_trials_of_dead_workers,
+    apply_best,
+    make_storage,
+    reproduce_command,
+    run_trial,
+    trial_params,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 TASK = "maze2d-umaze"  # the smoke profile's evolved task, the one a sweep reruns the phases of
@@ -212,3 +220,36 @@ def test_the_same_sweep_runs_on_postgresql(project: Path, postgres: str) -> None
     assert len(study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))) == 2
     _, (parent, *children) = _sweep_runs(project, "on-postgres")
     assert len(children) == 2 and parent.data.tags["storage"] == postgres
+
+
+def test_a_trial_sweeps_a_locomotion_task_on_its_gain_over_the_control(tmp_path: Path) -> None:
+    """``sweep.task: hopper-medium``: the trial evolves the hopper (not ``evolve``), runs each phase's control and
+    scores the phase by its paired gain, evaluated on the sweep's own episodes."""
+    name = "hopper-medium"
+    raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", tmp_path / "params.yaml").read_text())
+    raw["phases"] = {"phase1": {"previous": 0}}
+    raw["sweep"].update(
+        task=name, objective="gain", space={"evolution.discriminate.quantile": {"low": 0.2, "high": 0.8}}
+    )
+    base = params_from_dict(raw)
+    assert base.evolve == TASK and base.resolve(name).evaluate.seed != base.sweep.evaluate_seed
+    device = torch.device("cpu")
+    old = os.environ.pop("MLFLOW_TRACKING_URI", None)
+    try:
+        run_collect(base, name, tmp_path, progress=False)
+        run_reference(base, name, tmp_path, progress=False)
+        run_pretrain(base, name, tmp_path, device, progress=False)
+        params = trial_params(raw, {"evolution.discriminate.quantile": 0.3})
+        assert params.evolve == name and params.phase(1).discriminate.quantile == 0.3
+        assert params.resolve(name).evaluate.seed == base.sweep.evaluate_seed
+        reports: list[tuple[int, float, dict]] = []
+        trial = tmp_path / "trial"
+        value = run_trial(params, base.sweep, tmp_path, trial, device, lambda k, v, m: reports.append((k, v, m)))
+    finally:
+        if old is not None:
+            os.environ["MLFLOW_TRACKING_URI"] = old
+    ((k, reported, metrics),) = reports
+    assert k == 1 and value == reported == metrics["control"]["gain_mean"]
+    assert "gold_coin" not in metrics  # a locomotion task has no coin evaluation
+    assert (tmp_path / "trial" / model_dir(name, 1, 0, control=True)).exists()
+    assert reproduce_command({"evolve": name}) == "dvc exp run -S 'evolve=hopper-medium'"

@@ -97,7 +97,8 @@ def pretrain(
     device: Device = "auto",
     progress: Progress = True,
 ) -> None:
-    """Train the Diffuser baseline (phase 0) on a task's dataset into models/<task>/phase0."""
+    """Train the Diffuser baseline (phase 0) on a task's dataset into models/<task>/phase0/seed<s>, once per
+    training seed (``seeds``)."""
     from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.stages.pretrain import run_pretrain
 
@@ -122,9 +123,14 @@ def evaluate(
     p = _params(params)
     name = _task(p, task, evolution=phase > 0)
     m = _guarded(lambda: run_evaluate(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
-    typer.echo(
-        f"{name} phase {phase}: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f} ({m['n_episodes']} episodes)"
-    )
+    typer.echo(f"{name} phase {phase}: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f} ({_spread(m)})")
+
+
+def _spread(metrics: dict) -> str:
+    """What a standard error is over: the episodes of one training seed, or the seeds."""
+    if metrics.get("n_seeds", 1) > 1:
+        return f"over {metrics['n_seeds']} training seeds of {metrics['n_episodes']} episodes each"
+    return f"{metrics['n_episodes']} episodes"
 
 
 @app.command("evaluate-control")
@@ -146,7 +152,7 @@ def evaluate_control(
     m = _guarded(lambda: run_evaluate(p, name, Path.cwd(), phase, dev, progress=progress, control=True))
     typer.echo(
         f"{name} phase {phase} control: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f}; "
-        f"gain of phase {phase} {m['gain_mean']:+.1f} +- {m['gain_stderr']:.1f} ({m['n_episodes']} paired episodes)"
+        f"gain of phase {phase} {m['gain_mean']:+.1f} +- {m['gain_stderr']:.1f} ({_spread(m)}, paired)"
     )
 
 
@@ -182,31 +188,35 @@ def generate(
     device: Device = "auto",
     progress: Progress = True,
 ) -> None:
-    """Sample plans for random tasks with phase k-1's model into data/<task>/phase<k>/generated.parquet."""
+    """Sample plans for random tasks with phase k-1's model into data/<task>/phase<k>/generated/seed<s>.parquet
+    (one per training seed)."""
     from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.stages.generate import run_generate
 
     p = _params(params)
     name = _task(p, task, evolution=True)
-    stats = _guarded(lambda: run_generate(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
-    details = ", ".join(f"{key} {value:.3g}" for key, value in stats.items() if key != "generated")
-    typer.echo(f"phase {phase}: generated {stats['generated']} plans ({details})")
+    per_seed = _guarded(lambda: run_generate(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
+    for seed, stats in per_seed.items():
+        details = ", ".join(f"{key} {value:.3g}" for key, value in stats.items() if key != "generated")
+        typer.echo(f"phase {phase}, seed {seed}: generated {stats['generated']} plans ({details})")
 
 
 @app.command()
 def discriminate(
     phase: EvolutionPhase, params: ParamsPath = Path("params.yaml"), task: TaskOption = None, progress: Progress = True
 ) -> None:
-    """Track generated plans in the simulator, reject and select into data/<task>/phase<k>/selected.parquet."""
+    """Track generated plans in the simulator, reject and select into data/<task>/phase<k>/selected/seed<s>.parquet
+    (one per training seed)."""
     from adaptdiffuser.stages.discriminate import run_discriminate
 
     p = _params(params)
     name = _task(p, task, evolution=True)
     report = _guarded(lambda: run_discriminate(p, name, Path.cwd(), phase, progress=progress))
-    typer.echo(
-        f"phase {phase}: kept {report['kept']} of {report['generated']} "
-        f"({report['rejected_tracking']} failed tracking, {report['rejected_reward']} failed the reward rule)"
-    )
+    for seed, r in report["seeds"].items():
+        typer.echo(
+            f"phase {phase}, seed {seed}: kept {r['kept']} of {r['generated']} "
+            f"({r['rejected_tracking']} failed tracking, {r['rejected_reward']} failed the reward rule)"
+        )
 
 
 def _train_phase(phase: int, params: Path, task: str | None, device: str, progress: bool, control: bool) -> None:
@@ -229,7 +239,8 @@ def finetune(
     device: Device = "auto",
     progress: Progress = True,
 ) -> None:
-    """Fine-tune phase k-1's model on expert plus selected data into models/<task>/phase<k>."""
+    """Fine-tune phase k-1's model on expert plus selected data into models/<task>/phase<k>/seed<s> (one per
+    training seed)."""
     _train_phase(phase, params, task, device, progress, control=False)
 
 
@@ -242,7 +253,7 @@ def control(
     progress: Progress = True,
 ) -> None:
     """Phase k's equal-compute control: phase k-1's model trained as finetune@phase<k> does (same steps, seed and
-    settings) on expert data only, into models/<task>/phase<k>-control."""
+    settings) on expert data only, into models/<task>/phase<k>-control/seed<s>."""
     _train_phase(phase, params, task, device, progress, control=True)
 
 
@@ -306,6 +317,41 @@ def profile(
     """Switch params.yaml to a profile (profiles/quick.yaml overlaid with profiles/<name>.yaml)."""
     out = _guarded(lambda: apply_profile(name, profiles_dir, params))
     typer.echo(f"{out} now holds profile {name!r}; run `dvc repro`")
+
+
+@app.command("set")
+def set_value(
+    assignment: Annotated[str, typer.Argument(help="key=value, e.g. evolve=hopper-medium or seeds=[0,1,2]")],
+    params: ParamsPath = Path("params.yaml"),
+) -> None:
+    """Set one params key in place, keeping the file's comments; the result is validated before it is written."""
+    import yaml
+
+    from adaptdiffuser.sweep import apply_best
+
+    key, sep, value = assignment.partition("=")
+    if not sep or not key.strip():
+        _guarded(lambda: _raise(ConfigError(f"set: expected key=value, got {assignment!r}")))
+    _guarded(lambda: apply_best(params, {key.strip(): yaml.safe_load(value)}))
+    typer.echo(f"{params}: {key.strip()} = {value}")
+
+
+@app.command()
+def gains(
+    summaries: Annotated[
+        list[Path] | None, typer.Argument(help="metrics/summary.json files (default: metrics/summary.json)")
+    ] = None,
+) -> None:
+    """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error) as a
+    Markdown table."""
+    from adaptdiffuser.io import read_json
+    from adaptdiffuser.stages.report import gains_table
+
+    merged: dict = {}
+    for path in summaries or [Path("metrics/summary.json")]:
+        merged |= _guarded(lambda path=path: read_json(path, f"{path} (run the summarize stage)"))
+    for line in gains_table(merged):
+        typer.echo(line)
 
 
 @app.command()

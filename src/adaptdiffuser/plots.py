@@ -81,15 +81,26 @@ def save_score_by_phase(
     stderrs: list[float],
     path: str | Path,
     control: tuple[list[int], list[float], list[float]] | None = None,
+    seed_points: tuple[list[int], list[float]] | None = None,
+    control_seed_points: tuple[list[int], list[float]] | None = None,
 ) -> None:
     """One PNG: normalized score of each phase with standard-error bars (phase 0 is the Diffuser baseline) and,
-    when given, each phase's equal-compute control (phase k-1's model trained as long on expert data only)."""
+    when given, each phase's equal-compute control (phase k-1's model trained as long on expert data only) and
+    each training seed's own score as small dots (``(phase, score)`` pairs)."""
     fig, ax = plt.subplots(figsize=(4.4, 3.2))
-    ax.errorbar(phases, means, yerr=stderrs, marker="o", capsize=4, label="AdaptDiffuser")
+    line = ax.errorbar(phases, means, yerr=stderrs, marker="o", capsize=4, label="AdaptDiffuser")
+    if seed_points is not None and seed_points[0]:
+        ax.plot(*seed_points, ".", color=line[0].get_color(), alpha=0.5, ms=5, label="training seeds")
     if control is not None and control[0]:
         c_phases, c_means, c_stderrs = control
         offset = [p + 0.08 for p in c_phases]  # side by side with the phase's own point
-        ax.errorbar(offset, c_means, yerr=c_stderrs, marker="s", capsize=4, ls="none", label="control (expert only)")
+        bars = ax.errorbar(
+            offset, c_means, yerr=c_stderrs, marker="s", capsize=4, ls="none", label="control (expert only)"
+        )
+        if control_seed_points is not None and control_seed_points[0]:
+            c_x, c_y = control_seed_points
+            ax.plot([p + 0.08 for p in c_x], c_y, ".", color=bars[0].get_color(), alpha=0.5, ms=5)
+    if len(ax.get_legend_handles_labels()[0]) > 1:
         ax.legend(fontsize=7)
     ax.set_xticks(phases)
     ax.set_xlabel("phase (0 = Diffuser)")

@@ -1,11 +1,15 @@
 """Optuna sweep over params (alpha, discriminator thresholds, ...) declared in ``params.yaml``'s ``sweep`` section.
 
-Each trial reruns the evolution phases (generate, discriminate, fine-tune, evaluate, evaluate-coin) in its own
-folder ``sweeps/<study>/trial_<n>/``, reusing the project's cached expert data, reference scores and phase-0
-model, and reports its score after every phase so hopeless trials are pruned. Workers are processes sharing one
-Optuna storage: a journal file by default (``sweeps/<study>.journal``), or any RDB URL such as
-``postgresql://user@host/db`` for workers on several machines (then Optuna heartbeats fail and retry the trials
-of killed workers; with the journal file the sweep command does that for its own workers).
+Each trial reruns the evolution phases of the swept task (``sweep.task``, default ``evolve``: generate,
+discriminate, fine-tune, evaluate, and the equal-compute control or the gold-coin evaluation when the objective
+needs them) for every training seed, in its own folder ``sweeps/<study>/trial_<n>/``, reusing the project's cached
+data, reference scores and phase-0 models, and reports its objective after every phase so hopeless trials are
+pruned. The default objective is the final phase's gain over its control (the number the results lead with), not
+its raw score. Trials evaluate on their own episodes (``sweep.evaluate_seed``), never on the pipeline's.
+
+Workers are processes sharing one Optuna storage: a journal file by default (``sweeps/<study>.journal``), or any
+RDB URL such as ``postgresql://user@host/db`` for workers on several machines (then Optuna heartbeats fail and
+retry the trials of killed workers; with the journal file the sweep command does that for its own workers).
 
 MLflow: one parent run per sweep, one child run per trial (params, per-phase scores, objective), and each
 trial's stage runs nested under its child run.
@@ -31,22 +35,33 @@ from adaptdiffuser.tracking import PARENT_RUN_ENV
 
 
 def shared_inputs(task: str) -> tuple[Path, ...]:
-    """The cached pipeline outputs of the evolved task that every trial reuses (phase 0 is never retrained)."""
-    from adaptdiffuser.stages.common import dataset_path, model_dir, reference_path
+    """The cached pipeline outputs of the swept task that every trial reuses (phase 0 is never retrained)."""
+    from adaptdiffuser.stages.common import collect_dir, dataset_path, phase_models_dir, reference_path
 
-    return (dataset_path(task), model_dir(task, 0), reference_path(task))
+    return (dataset_path(task), collect_dir(task), phase_models_dir(task, 0), reference_path(task))
 
 
-def objective_value(sweep: SweepParams, navigation: dict, gold_coin: dict) -> float:
-    """The sweep's score of one evaluated phase: ``navigation`` = normalized navigation score, ``coin`` = 100 x
-    coin both-rate, ``mix`` = (1 - coin_weight) x navigation + coin_weight x coin."""
-    nav = float(navigation["score_mean"])
-    coin = 100.0 * float(gold_coin["both_rate"])
-    if sweep.objective == "navigation":
-        return nav
+def swept_task(params: Params) -> str:
+    """The task the trials evolve: ``sweep.task``, or ``evolve`` when that is null."""
+    task = params.sweep.task if params.sweep.task is not None else params.evolve
+    if task is None:
+        raise StageError("the sweep needs a task to evolve: set sweep.task or evolve")
+    return task
+
+
+def objective_value(sweep: SweepParams, metrics: dict[str, dict]) -> float:
+    """The sweep's score of one evaluated phase from its ``evaluate`` metrics (and ``control`` or ``gold_coin``
+    where the objective needs them): ``gain`` = score - control score (paired, mean over seeds), ``score`` =
+    normalized score, ``coin`` = 100 x coin both-rate, ``mix`` = (1 - coin_weight) x score + coin_weight x coin."""
+    if sweep.objective == "gain":
+        return float(metrics["control"]["gain_mean"])
+    score = float(metrics["evaluate"]["score_mean"])
+    if sweep.objective == "score":
+        return score
+    coin = 100.0 * float(metrics["gold_coin"]["both_rate"])
     if sweep.objective == "coin":
         return coin
-    return (1.0 - sweep.coin_weight) * nav + sweep.coin_weight * coin
+    return (1.0 - sweep.coin_weight) * score + sweep.coin_weight * coin
 
 
 def suggest(trial: optuna.Trial, dim: SearchDimension) -> Any:
@@ -59,9 +74,18 @@ def suggest(trial: optuna.Trial, dim: SearchDimension) -> Any:
 
 
 def trial_params(raw: dict[str, Any], values: dict[str, Any]) -> Params:
-    """The project's params with a trial's values set (and validated)."""
+    """The project's params with a trial's values set (and validated), evolving the swept task and evaluating on
+    the sweep's own episodes (``sweep.evaluate_seed``, also where the task overrides ``evaluate``); the ``sweep``
+    section itself is left out (pass ``base.sweep`` to :func:`run_trial`)."""
+    base = params_from_dict(raw)
+    task = swept_task(base)
+    raw = {key: value for key, value in raw.items() if key != "sweep"}
     for key, value in values.items():
         raw = set_dotted(raw, key, value)
+    raw = set_dotted(raw, "evolve", task)
+    raw = set_dotted(raw, "evaluate.seed", base.sweep.evaluate_seed)
+    if "seed" in (raw.get("task", {}).get(task, {}) or {}).get("evaluate", {}):
+        raw = set_dotted(raw, f"task.{task}.evaluate.seed", base.sweep.evaluate_seed)
     return params_from_dict(raw)
 
 
@@ -126,10 +150,16 @@ def _link_shared_inputs(root: Path, trial_dir: Path, task: str) -> None:
 
 
 def run_trial(
-    params: Params, root: Path, trial_dir: Path, device: Any, report: Callable[[int, float, dict], None]
+    params: Params,
+    sweep: SweepParams,
+    root: Path,
+    trial_dir: Path,
+    device: Any,
+    report: Callable[[int, float, dict], None],
 ) -> float:
-    """Run every evolution phase of ``params`` in ``trial_dir``; ``report(k, value, metrics)`` after each phase
-    (it may raise :class:`optuna.TrialPruned`). Returns the final phase's objective."""
+    """Run every evolution phase of ``params`` (from :func:`trial_params`) in ``trial_dir``, for every training
+    seed; ``report(k, value, metrics)`` after each phase (it may raise :class:`optuna.TrialPruned`). Returns the
+    final phase's objective."""
     from adaptdiffuser.stages.discriminate import run_discriminate
     from adaptdiffuser.stages.evaluate import run_evaluate
     from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
@@ -139,6 +169,7 @@ def run_trial(
     if not params.phases or params.evolve is None:
         raise StageError("the sweep needs at least one evolution phase under 'phases' and a task to 'evolve'")
     task = params.evolve
+    objective = sweep.objective
     _link_shared_inputs(root, trial_dir, task)
     value = math.nan
     for phase in params.phases:
@@ -146,10 +177,14 @@ def run_trial(
         run_generate(params, task, trial_dir, k, device, progress=False)
         run_discriminate(params, task, trial_dir, k, progress=False)
         run_finetune(params, task, trial_dir, k, device, progress=False)
-        navigation = run_evaluate(params, task, trial_dir, k, device, progress=False)
-        gold = run_evaluate_coin(params, task, trial_dir, k, device, progress=False)
-        value = objective_value(params.sweep, navigation, gold)
-        report(k, value, {"navigation": navigation, "gold_coin": gold})
+        metrics = {"evaluate": run_evaluate(params, task, trial_dir, k, device, progress=False)}
+        if objective == "gain":
+            run_finetune(params, task, trial_dir, k, device, progress=False, control=True)
+            metrics["control"] = run_evaluate(params, task, trial_dir, k, device, progress=False, control=True)
+        if objective in ("coin", "mix"):
+            metrics["gold_coin"] = run_evaluate_coin(params, task, trial_dir, k, device, progress=False)
+        value = objective_value(sweep, metrics)
+        report(k, value, metrics)
     return value
 
 
@@ -168,7 +203,7 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
     client = MlflowClient(ctx.tracking_uri)
     base = params_from_dict(ctx.raw)
     sweep = base.sweep
-    experiment_id = ensure_experiment(base.evolve or base.tasks[0], ctx.root)
+    experiment_id = ensure_experiment(swept_task(base), ctx.root)
     storage = make_storage(ctx.storage, ctx.root, study_name, sweep.heartbeat_s)
     study = optuna.load_study(study_name=study_name, storage=storage, sampler=_sampler(sweep, worker))
     device = resolve_device(ctx.device)
@@ -190,15 +225,19 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
 
         def report(k: int, value: float, metrics: dict) -> None:
             client.log_metric(run_id, "objective", value, step=k)
-            client.log_metric(run_id, "navigation.score_mean", metrics["navigation"]["score_mean"], step=k)
-            client.log_metric(run_id, "gold_coin.both_rate", metrics["gold_coin"]["both_rate"], step=k)
+            client.log_metric(run_id, "score_mean", metrics["evaluate"]["score_mean"], step=k)
+            if "control" in metrics:
+                client.log_metric(run_id, "control.score_mean", metrics["control"]["score_mean"], step=k)
+                client.log_metric(run_id, "gain_mean", metrics["control"]["gain_mean"], step=k)
+            if "gold_coin" in metrics:
+                client.log_metric(run_id, "gold_coin.both_rate", metrics["gold_coin"]["both_rate"], step=k)
             trial.report(value, k)
             if trial.should_prune():
                 raise optuna.TrialPruned(f"phase {k}: objective {value:.2f} is below the running median")
 
         try:
             trial_dir = ctx.root / "sweeps" / study_name / f"trial_{trial.number}"
-            value = run_trial(params, ctx.root, trial_dir, device, report)
+            value = run_trial(params, sweep, ctx.root, trial_dir, device, report)
             client.log_metric(run_id, "final_objective", value)
             status = "FINISHED"
             return value
@@ -248,12 +287,13 @@ def run_sweep(
     trials = trials or sweep.trials
     workers = workers or sweep.workers
     storage = storage or sweep.storage
-    if params.evolve is None or not params.phases:
-        raise StageError("the sweep reruns the evolution phases: set 'evolve' to a task and declare 'phases'")
-    check_shared_inputs(root, params.evolve)
+    if not params.phases:
+        raise StageError("the sweep reruns the evolution phases: declare 'phases'")
+    task = swept_task(params)
+    check_shared_inputs(root, task)
     uri = tracking_uri(root)
     client = MlflowClient(uri)
-    experiment_id = ensure_experiment(params.evolve, root)
+    experiment_id = ensure_experiment(task, root)
     parent = client.create_run(
         experiment_id,
         run_name=f"sweep-{sweep.study}",
@@ -263,6 +303,8 @@ def run_sweep(
     client.log_param(parent_id, "trials", trials)
     client.log_param(parent_id, "workers", workers)
     client.log_param(parent_id, "objective", sweep.objective)
+    client.log_param(parent_id, "task", task)
+    client.log_param(parent_id, "evaluate_seed", sweep.evaluate_seed)
     for dim in sweep.space:
         client.log_param(parent_id, f"space.{dim.key}", _describe(dim))
     study_storage = make_storage(storage, root, sweep.study, sweep.heartbeat_s)
@@ -295,7 +337,7 @@ def run_sweep(
         client.set_terminated(parent_id, "FAILED")
         raise StageError(f"study {sweep.study!r}: no trial completed (see the worker output above)")
     best = study.best_trial
-    command = reproduce_command(best.params)
+    command = reproduce_command(best.params | ({"evolve": task} if task != params.evolve else {}))
     client.log_metric(parent_id, "best_objective", best.value)
     client.set_tag(parent_id, "reproduce", command)
     for key, value in best.params.items():

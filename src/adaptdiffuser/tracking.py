@@ -1,4 +1,5 @@
-"""MLflow tracking: one experiment per task, one run per stage execution, tagged with stage and phase.
+"""MLflow tracking: one experiment per task, one run per stage execution (and training seed), tagged with stage,
+phase and seed.
 
 The tracking URI defaults to ``sqlite:///<repo>/mlflow.db`` (``MLFLOW_TRACKING_URI`` overrides it) and each
 experiment stores artifacts under an explicit absolute location, ``<repo>/mlartifacts/<task>``. A stage that
@@ -58,16 +59,38 @@ def ensure_experiment(task: str, root: Path) -> str:
 
 
 @contextmanager
-def stage_run(task: str, stage: str, phase: int, params: dict[str, Any], root: Path = Path(".")) -> Iterator[Any]:
-    """An MLflow run for one stage execution; FAILED if the body raises."""
+def stage_run(
+    task: str, stage: str, phase: int, params: dict[str, Any], root: Path = Path("."), seed: int | str | None = None
+) -> Iterator[Any]:
+    """An MLflow run for one stage execution (for one training seed, when given; ``seed`` tag and a ``-seed<s>``
+    run name); FAILED if the body raises."""
     root = root.resolve()
     mlflow.set_tracking_uri(tracking_uri(root))
     experiment_id = ensure_experiment(task, root)
     tags = {"stage": stage, "phase": str(phase), "task": task, "git_commit": git_commit(root)}
+    name = f"{stage}-phase{phase}"
+    if seed is not None:
+        tags["seed"] = str(seed)
+        name += f"-seed{seed}"
     if os.environ.get("DVC_EXP_NAME"):
         tags["dvc_exp_name"] = os.environ["DVC_EXP_NAME"]
     if os.environ.get(PARENT_RUN_ENV):  # a sweep trial: nest the stage's run under the trial's run
         tags["mlflow.parentRunId"] = os.environ[PARENT_RUN_ENV]
-    with mlflow.start_run(experiment_id=experiment_id, run_name=f"{stage}-phase{phase}", tags=tags) as run:
+    with mlflow.start_run(experiment_id=experiment_id, run_name=name, tags=tags) as run:
         mlflow.log_params({k: str(v)[:500] for k, v in flatten(params).items()})
         yield run
+
+
+def log_over_seeds(task: str, stage: str, phase: int, metrics: dict[str, Any], root: Path = Path(".")) -> None:
+    """With several training seeds, one more run (``<stage>-phase<k>-seeds``, tag ``seed=all``) holding the
+    aggregate of a stage's per-seed metrics (see :func:`adaptdiffuser.seed_metrics.over_seeds`)."""
+    if metrics.get("n_seeds", 1) < 2:
+        return
+    numbers = {
+        k: float(v)
+        for k, v in flatten({k: v for k, v in metrics.items() if k != "seeds"}).items()
+        if isinstance(v, int | float) and not isinstance(v, bool)
+    }
+    seeds = ",".join(metrics["seeds"])
+    with stage_run(task, stage, phase, {"seeds": seeds}, root, seed="all"):
+        mlflow.log_metrics(numbers)

@@ -23,7 +23,7 @@ def stage_names(params: Params) -> list[str]:
 def describe(params: Params) -> list[str]:
     """Lines describing the tasks and every stage that will run, with the settings that matter most."""
     p = params
-    lines = [f"tasks: {', '.join(p.tasks)} (alpha {p.alpha:g})"]
+    lines = [f"tasks: {', '.join(p.tasks)} (alpha {p.alpha:g}), training seeds {list(p.seeds)}"]
     for name in p.tasks:
         t = p.resolve(name)
         lines.append(
@@ -68,7 +68,12 @@ def describe(params: Params) -> list[str]:
                 f"  evaluate@{k}: {t.evaluate.episodes} episodes",
                 f"  control@{k}: the same steps from phase{phase.previous} on expert data only (equal compute)",
                 f"  evaluate-control@{k}: the control on the same episodes; gain of {k} over it",
-                f"  evaluate-coin@{k}: {t.settings.gold_coin.cases_per_kind} gold-coin cases per kind",
+                f"  evaluate-coin@{k}: "
+                + (
+                    f"{t.settings.gold_coin.cases_per_kind} gold-coin cases per kind"
+                    if t.name in p.coin_tasks
+                    else f"skipped ({t.name} has no gold-coin task)"
+                ),
             ]
     return [*lines, "  summarize", "  report"]
 

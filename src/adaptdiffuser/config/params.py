@@ -11,7 +11,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 from pydantic.dataclasses import dataclass
 
 from adaptdiffuser.config.errors import ConfigError, show
-from adaptdiffuser.config.fields import Float, Str
+from adaptdiffuser.config.fields import Float, Seed, Str
 from adaptdiffuser.config.phases import PhaseParams, build_phases, check_chain
 from adaptdiffuser.config.sections import (
     SECTION,
@@ -46,6 +46,7 @@ class Params:
     evolve: Str | None = DEFAULT_TASK  # the task the evolution phases run on; null = phase 0 only
     evolution: EvolutionParams = field(default_factory=EvolutionParams)
     alpha: Float = 0.0
+    seeds: tuple[Seed, ...] = (0,)  # training seeds: every training stage runs once per seed (see seeding.py)
     phases: tuple[PhaseParams, ...] = ()  # from a mapping phase<k>: {previous: j, <evolution overrides>}
     sweep: SweepParams = field(default_factory=SweepParams)
 
@@ -81,6 +82,15 @@ class Params:
     @classmethod
     def _empty_list(cls, value: Any) -> Any:
         return () if value is None else value
+
+    @field_validator("seeds")
+    @classmethod
+    def _distinct_seeds(cls, value: tuple[int, ...]) -> tuple[int, ...]:
+        if not value:
+            raise ValueError("needs at least one training seed, e.g. [0]")
+        if len(set(value)) != len(value):
+            raise ValueError(f"lists a seed twice: {list(value)}")
+        return value
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Params:
@@ -124,6 +134,29 @@ class Params:
         return chain[::-1]
 
 
+def check_sweep(p: Params) -> None:
+    """The swept task runs evolution phases, a coin objective needs a coin task, and trials never evaluate on the
+    pipeline's evaluation episodes."""
+    s = p.sweep
+    task = s.task if s.task is not None else p.evolve
+    if task is None:
+        return  # phase 0 only: `adaptdiffuser sweep` says it needs a task to evolve
+    if task not in p.tasks:
+        raise ConfigError(f"sweep.task: {task!r} must be one of tasks {list(p.tasks)} (its phase 0 is reused)")
+    if "evolve" not in task_stages(p.task[task]):
+        raise ConfigError(f"sweep.task: the {p.task[task].family} family of {task} has no evolution phases to sweep")
+    if s.objective in ("coin", "mix") and task not in p.coin_tasks:
+        raise ConfigError(
+            f"sweep.objective: {s.objective!r} needs a gold-coin task and {task} is not in coin_tasks; "
+            "use gain or score"
+        )
+    if s.space and s.evaluate_seed == p.task[task].evaluate.seed:
+        raise ConfigError(
+            f"sweep.evaluate_seed: {s.evaluate_seed} is the evaluation seed of {task} (evaluate.seed); trials "
+            "must not be tuned on the episodes the results are reported on"
+        )
+
+
 def check_cross_fields(p: Params) -> None:
     """The checks that span sections; :class:`ConfigError` naming the key."""
     factor = 2 ** (len(p.model.dim_mults) - 1)
@@ -138,6 +171,7 @@ def check_cross_fields(p: Params) -> None:
         )
     check_task_lists(p)
     check_chain(p.phases)
+    check_sweep(p)
     for name in p.tasks:  # entries not listed in `tasks` are type-checked only (another profile's tasks)
         check_task(p.task[name], p)
     if p.phases and p.evolve is not None:

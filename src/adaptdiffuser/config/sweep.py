@@ -23,7 +23,7 @@ from adaptdiffuser.config.fields import (
 )
 from adaptdiffuser.config.sections import SECTION
 
-SWEEP_OBJECTIVES = ("navigation", "coin", "mix")
+SWEEP_OBJECTIVES = ("gain", "score", "coin", "mix")
 SEARCH_KINDS = ("float", "int", "categorical")
 
 
@@ -81,10 +81,12 @@ def search_dimension(key: str, spec: Any) -> SearchDimension:
 @dataclass(frozen=True, config=SECTION)
 class SweepParams:
     study: Str = "adaptdiffuser"
+    task: Str | None = None  # the task whose evolution phases the trials run; null = `evolve`
     trials: PositiveInt = 4
     workers: PositiveInt = 2
     seed: Seed = 0
-    objective: Annotated[Str, one_of(*SWEEP_OBJECTIVES)] = "mix"
+    objective: Annotated[Str, one_of(*SWEEP_OBJECTIVES)] = "gain"
+    evaluate_seed: Seed = 5000  # the trials' evaluation episodes: never the pipeline's (evaluate.seed)
     coin_weight: Annotated[Float, UNIT] = 0.5
     storage: Str | None = None
     heartbeat_s: PositiveInt = 30

@@ -160,8 +160,11 @@ class TaskFiles:
 
     root: Path
     task: str
-    #: the model folder in use (``models/<task>/phase<k>``, relative to ``root``); None = the phase-0 model
+    #: the model folder in use (``models/<task>/phase<k>/seed<s>``, relative to ``root``); None = the phase-0
+    #: model of training seed ``seed``
     model: Path | None = None
+    #: the training seed the stage works for
+    seed: int = 0
 
     @property
     def dataset(self) -> Path:
@@ -174,7 +177,9 @@ class TaskFiles:
         """The value function beside the model in use (fine-tuning carries phase 0's into every later model)."""
         from adaptdiffuser.stages.common import value_dir
 
-        return self.root / self.model / "value" if self.model is not None else self.root / value_dir(self.task)
+        return (
+            self.root / self.model / "value" if self.model is not None else self.root / value_dir(self.task, self.seed)
+        )
 
     @property
     def collect(self) -> Path:

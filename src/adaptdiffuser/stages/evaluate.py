@@ -20,6 +20,7 @@ from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.io import atomic_path, read_json, write_json
 from adaptdiffuser.planning import Planner
+from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.stages.common import (
     model_dir,
     phase_metrics_path,
@@ -28,7 +29,7 @@ from adaptdiffuser.stages.common import (
     reference_path,
     results_dir,
 )
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.tracking import log_over_seeds, stage_run
 
 
 def run_evaluate(
@@ -40,17 +41,43 @@ def run_evaluate(
     progress: bool = True,
     control: bool = False,
 ) -> dict:
-    """Stage ``evaluate``: run phase ``phase``'s planner on the task's evaluation episodes (batched), write the
-    per-episode table, pictures of the first episodes and the metrics (score mean and standard error).
+    """Stage ``evaluate`` (or ``evaluate-control``): :func:`evaluate_seed` for every training seed, on the same
+    episodes; write the metrics of every seed and their aggregate (mean and standard error over seeds; see
+    :mod:`adaptdiffuser.seed_metrics`) to ``metrics/tasks/<task>/phase<k>[-control].json``."""
+    task = params.resolve(task_name)
+    ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
+    per_seed = {
+        seed: evaluate_seed(params, task.name, root, phase, device, seed, ref, progress, control)
+        for seed in params.seeds
+    }
+    metrics = over_seeds(per_seed)
+    write_json(root / phase_metrics_path(task.name, phase, control), metrics)
+    log_over_seeds(task.name, "evaluate-control" if control else "evaluate", phase, metrics, root)
+    return metrics
+
+
+def evaluate_seed(
+    params: Params,
+    task_name: str,
+    root: Path,
+    phase: int,
+    device: torch.device,
+    seed: int,
+    ref: dict,
+    progress: bool = True,
+    control: bool = False,
+) -> dict:
+    """Run training seed ``seed``'s planner of phase ``phase`` on the task's evaluation episodes (batched); write
+    the per-episode table and pictures of the first episodes; return the metrics (score mean and standard error
+    over episodes).
 
     With ``control``, evaluate phase k's control model on the same episodes instead, and add the gain of phase k
     over it (``gain_mean``, ``gain_stderr``: paired over episodes; phase k's evaluation must exist)."""
     task = params.resolve(task_name)
     family = get_family(task.family)
-    ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
-    model = model_dir(task.name, phase, control)
+    model = model_dir(task.name, phase, seed, control)
     bundle = load_bundle(root / model, device)
-    evolved_table = root / results_dir(task.name, phase) / "episodes.parquet"
+    evolved_table = root / results_dir(task.name, phase, seed) / "episodes.parquet"
     if control and not evolved_table.exists():
         raise FileNotFoundError(f"{evolved_table}: phase {phase}'s evaluation, needed for the gain over its control")
     ev, pl = task.evaluate, task.planner
@@ -59,10 +86,11 @@ def run_evaluate(
         "planner": task.section("planner"),
         "evaluate": task.section("evaluate"),
         "model": {"path": str(model), "data": bundle.config.get("data", {})},
+        "seed": seed,
     }
     name = phase_name(phase, control)
-    with stage_run(task.name, "evaluate-control" if control else "evaluate", phase, logged, root):
-        files = TaskFiles(root, task.name, model)
+    with stage_run(task.name, "evaluate-control" if control else "evaluate", phase, logged, root, seed=seed):
+        files = TaskFiles(root, task.name, model, seed)
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
         controller = family.controller(task, planner, files, device)
         result = run_episodes(
@@ -71,7 +99,7 @@ def run_evaluate(
             ev.episodes,
             ev.seed,
             ev.batch_size,
-            desc=f"evaluate {task.name} {name}",
+            desc=f"evaluate {task.name} {name} seed {seed}",
             progress=progress,
         )
         metrics = summarize(result, ref["r_min"], ref["r_max"]) | family.episode_metrics(result)
@@ -93,17 +121,18 @@ def run_evaluate(
                     f"{evolved_table}: its episodes differ from the control's; rerun evaluate@phase{phase}"
                 )
             metrics |= paired_gain(np.asarray(evolved["score"]), scores)
-        out = root / results_dir(task.name, phase, control) / "episodes.parquet"
+        out = root / results_dir(task.name, phase, seed, control) / "episodes.parquet"
         out.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(out) as tmp:
             pq.write_table(table, tmp)
-        pictures = root / plots_dir(task.name, phase, control)
+        pictures = root / plots_dir(task.name, phase, seed, control)
         for i in range(min(ev.pictures, ev.episodes)):
             picture = pictures / f"plan_{i:02d}.png"
-            title = f"{task.name} {name}, episode {i}: return {result.returns[i]:.0f}, score {scores[i]:.0f}"
+            title = (
+                f"{task.name} {name} seed {seed}, episode {i}: return {result.returns[i]:.0f}, score {scores[i]:.0f}"
+            )
             family.save_picture(task, picture, result.plans[i], result.executed[i], title, goal=result.goals[i])
             mlflow.log_artifact(str(picture), artifact_path="plans")
-        write_json(root / phase_metrics_path(task.name, phase, control), metrics)
         mlflow.log_metrics({k: float(v) for k, v in metrics.items()})
         mlflow.log_artifact(str(out))
     return metrics

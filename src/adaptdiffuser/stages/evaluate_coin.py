@@ -19,27 +19,57 @@ from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.io import read_json, write_json
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.plots import save_coin_picture
+from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.stages.common import coin_metrics_path, coin_plots_dir, model_dir, reference_path
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.tracking import log_over_seeds, stage_run
 
 
 def run_evaluate_coin(
     params: Params, task_name: str, root: Path, phase: int, device: torch.device, progress: bool = True
 ) -> dict:
-    """Plan each fixed coin case once, guided toward its coin with scale ``alpha``, follow the plan for a whole
-    episode, and score pick / goal / both rates, plan collisions and the navigation score."""
+    """Stage ``evaluate-coin``: :func:`evaluate_coin_seed` for every training seed; write every seed's metrics and
+    their mean to ``metrics/tasks/<task>/phase<k>-coin.json``."""
     task = params.resolve(task_name)
     if task.name not in params.coin_tasks:  # evaluate-coin@phase<k> follows `evolve`, whatever its family
         skipped = {"n_episodes": 0, "skipped": f"{task.name} is not in coin_tasks (no gold-coin variant)"}
         write_json(root / coin_metrics_path(task.name, phase), skipped)
-        (root / coin_plots_dir(task.name, phase)).mkdir(parents=True, exist_ok=True)  # the stage's declared output
+        (root / coin_plots_dir(task.name, phase, 0)).parent.mkdir(parents=True, exist_ok=True)  # the stage's output
         return skipped
-    family = get_family(task.family)
     ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
-    bundle = load_bundle(root / model_dir(task.name, phase), device)
+    per_seed = {
+        seed: {"gold_coin": evaluate_coin_seed(params, task.name, root, phase, device, seed, ref, progress)}
+        for seed in params.seeds
+    }
+    metrics = over_seeds(per_seed)
+    write_json(root / coin_metrics_path(task.name, phase), metrics)
+    log_over_seeds(task.name, "evaluate-coin", phase, metrics, root)
+    return metrics["gold_coin"]
+
+
+def evaluate_coin_seed(
+    params: Params,
+    task_name: str,
+    root: Path,
+    phase: int,
+    device: torch.device,
+    seed: int,
+    ref: dict,
+    progress: bool = True,
+) -> dict:
+    """Plan each fixed coin case once with training seed ``seed``'s model of the phase, guided toward its coin with
+    scale ``alpha``, follow the plan for a whole episode, and score pick / goal / both rates, plan collisions and
+    the navigation score."""
+    task = params.resolve(task_name)
+    family = get_family(task.family)
+    bundle = load_bundle(root / model_dir(task.name, phase, seed), device)
     gc, pl = task.settings.gold_coin, task.planner
-    logged = {"gold_coin": task.section("gold_coin"), "alpha": params.alpha, "planner": task.section("planner")}
-    with stage_run(task.name, "evaluate-coin", phase, logged, root):
+    logged = {
+        "gold_coin": task.section("gold_coin"),
+        "alpha": params.alpha,
+        "planner": task.section("planner"),
+        "seed": seed,
+    }
+    with stage_run(task.name, "evaluate-coin", phase, logged, root, seed=seed):
         env = family.make_simulator(task)
         cases = coin_cases(env, gc.cases_per_kind, np.random.default_rng(gc.seed))
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
@@ -55,7 +85,7 @@ def run_evaluate_coin(
             len(cases),
             gc.seed,
             gc.batch_size,
-            desc=f"gold coin phase {phase}",
+            desc=f"gold coin phase {phase} seed {seed}",
             progress=progress,
             reset=lambda e, i: e.set_state(cases.starts[i]),
         )
@@ -65,9 +95,8 @@ def run_evaluate_coin(
         ]
         scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
         gold = summarize_coin(outcomes, cases.kinds, scores)
-        write_json(root / coin_metrics_path(task.name, phase), {"gold_coin": gold})
         mlflow.log_metrics({f"gold_coin.{k}": float(v) for k, v in gold.items()})
-        pictures = root / coin_plots_dir(task.name, phase)
+        pictures = root / coin_plots_dir(task.name, phase, seed)
         goals = np.stack([env.goal_state()] * len(cases))
         picked = list(range(min(gc.pictures, len(cases))))
         if picked:
@@ -85,7 +114,7 @@ def run_evaluate_coin(
                 result.executed[i],
                 cases.coins[i],
                 gc.radius,
-                f"phase {phase}, {cases.kinds[i]} coin, alpha {params.alpha:g}: {verdict}",
+                f"phase {phase} seed {seed}, {cases.kinds[i]} coin, alpha {params.alpha:g}: {verdict}",
             )
             mlflow.log_artifact(str(picture), artifact_path="gold_coin")
     return gold

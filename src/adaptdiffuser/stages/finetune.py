@@ -16,19 +16,27 @@ from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
 from adaptdiffuser.io import atomic_dir
 from adaptdiffuser.plots import save_loss_curve
-from adaptdiffuser.seeding import derive_seed
-from adaptdiffuser.stages.common import file_digest, model_dir, phase_name, selected_path
+from adaptdiffuser.seeding import derive_seed, training_seed
+from adaptdiffuser.stages.common import (
+    file_digest,
+    model_dir,
+    phase_models_dir,
+    phase_name,
+    seed_name,
+    selected_path,
+)
 from adaptdiffuser.stages.pretrain import expert_training_data
 from adaptdiffuser.tracking import stage_run
 from adaptdiffuser.training import fingerprint, train
 
 
-def finetune_config(params: Params, task: TaskParams, phase: int) -> PretrainParams:
-    """Training settings of a fine-tuning phase: pretraining's, for ``finetune.steps_fraction`` of its steps,
-    with a seed derived from the phase, and the EMA updated from the first step (it continues phase k-1's)."""
+def finetune_config(params: Params, task: TaskParams, phase: int, seed: int) -> PretrainParams:
+    """Training settings of a fine-tuning phase for training seed ``seed``: pretraining's, for
+    ``finetune.steps_fraction`` of its steps, with a seed derived from the phase and the training seed, and the
+    EMA updated from the first step (it continues phase k-1's)."""
     f = params.phase(phase).finetune
     steps = max(1, round(f.steps_fraction * task.pretrain.steps))
-    return replace(task.pretrain, steps=steps, seed=derive_seed(f.seed, phase), ema_start=0)
+    return replace(task.pretrain, steps=steps, seed=training_seed(derive_seed(f.seed, phase), seed), ema_start=0)
 
 
 def run_finetune(
@@ -40,37 +48,56 @@ def run_finetune(
     progress: bool = True,
     control: bool = False,
 ) -> Path:
+    """Stage ``finetune@phase<k>`` (or ``control@phase<k>``): :func:`finetune_seed` for every training seed;
+    returns the phase's models folder."""
+    for seed in params.seeds:
+        finetune_seed(params, task_name, root, phase, device, seed, progress, control)
+    return root / phase_models_dir(task_name, phase, control)
+
+
+def finetune_seed(
+    params: Params,
+    task_name: str,
+    root: Path,
+    phase: int,
+    device: torch.device,
+    seed: int,
+    progress: bool = True,
+    control: bool = False,
+) -> Path:
     """Start from phase k-1's weights, EMA and normalizer; train on the expert data mixed with the data selected
-    in phase k and its ancestors (``finetune.expert_weight`` of each batch is expert); write
-    ``models/<task>/phase<k>``. With ``control``, train on expert data only, with the same steps, seed and
-    settings, into ``models/<task>/phase<k>-control``: the difference between the two is the synthetic data."""
+    in phase k and its ancestors (``finetune.expert_weight`` of each batch is expert), all of training seed
+    ``seed``; write ``models/<task>/phase<k>/seed<s>``. With ``control``, train on expert data only, with the same
+    steps, seed and settings, into ``models/<task>/phase<k>-control/seed<s>``: the difference between the two is
+    the synthetic data."""
     task = params.resolve(task_name)
     cfg = params.phase(phase)
-    source = model_dir(task.name, cfg.previous)
+    source = model_dir(task.name, cfg.previous, seed)
     bundle = load_bundle(root / source, device)
-    expert, expert_info = expert_training_data(task, root)
+    expert, expert_info = expert_training_data(task, root, seed)
     synthetic_info = {}
     parts = [WindowDataset(expert, task.diffusion.horizon, bundle.normalizer)]
     for j in [] if control else params.lineage(phase):
-        path = root / selected_path(task.name, j)
+        path = root / selected_path(task.name, j, seed)
         parts.append(WindowDataset(read_trajectories(path), task.diffusion.horizon, bundle.normalizer))
-        synthetic_info[f"phase{j}"] = {"path": str(selected_path(task.name, j)), "sha256": file_digest(path)}
+        synthetic_info[f"phase{j}"] = {"path": str(selected_path(task.name, j, seed)), "sha256": file_digest(path)}
     w = 1.0 if control else cfg.finetune.expert_weight
     synthetic_share = (1.0 - w) / max(1, len(parts) - 1)
     dataset = MixedWindowDataset(parts, [w] + [synthetic_share] * (len(parts) - 1))
-    train_cfg = finetune_config(params, task, phase)
+    train_cfg = finetune_config(params, task, phase, seed)
     logged = {
         "finetune": asdict(cfg.finetune) | {"control": control},
         "train": asdict(train_cfg),
         "model": {"path": str(source), "phase": cfg.previous},
         "data": {"expert": expert_info, "synthetic": synthetic_info},
+        "seed": seed,
     }
     stage = "control" if control else "finetune"
-    with stage_run(task.name, stage, phase, logged, root):
+    with stage_run(task.name, stage, phase, logged, root, seed=seed):
         mlflow.log_metrics(
             {f"windows.{name}": len(p) for name, p in zip(["expert", *synthetic_info], parts, strict=True)}
         )
-        resume = root / "models" / ".resume" / f"{task.name}-{phase_name(phase, control)}.pt"
+        resume = root / "models" / ".resume" / f"{task.name}-{phase_name(phase, control)}-{seed_name(seed)}.pt"
         resume.parent.mkdir(parents=True, exist_ok=True)
         history = train(
             bundle,
@@ -88,9 +115,10 @@ def run_finetune(
             "previous": cfg.previous,
             "finetune": asdict(cfg.finetune),
             "control": control,
+            "seed": seed,
             "data": logged["data"],
         }
-        out = root / model_dir(task.name, phase, control)
+        out = root / model_dir(task.name, phase, seed, control)
         save_bundle(out, bundle)
         if (root / source / "value").is_dir():  # the planner's value function travels with the model (not retrained)
             with atomic_dir(out / "value") as tmp:

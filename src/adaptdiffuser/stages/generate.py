@@ -15,30 +15,44 @@ from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed
+from adaptdiffuser.seeding import derive_seed, training_seed
 from adaptdiffuser.stages.common import generated_path, model_dir
 from adaptdiffuser.tracking import stage_run
 
 
 def run_generate(
     params: Params, task_name: str, root: Path, phase: int, device: torch.device, progress: bool = True
+) -> dict[int, dict]:
+    """Stage ``generate@phase<k>``: :func:`generate_seed` for every training seed; each seed's statistics."""
+    return {seed: generate_seed(params, task_name, root, phase, device, seed, progress) for seed in params.seeds}
+
+
+def generate_seed(
+    params: Params, task_name: str, root: Path, phase: int, device: torch.device, seed: int, progress: bool = True
 ) -> dict:
-    """Sample the family's generation tasks with the model of the phase this one starts from (guided as the family
-    does it); write the plans to ``data/<task>/phase<k>/generated.parquet``."""
+    """Sample the family's generation tasks with training seed ``seed``'s model of the phase this one starts from
+    (guided as the family does it); write the plans to ``data/<task>/phase<k>/generated/seed<s>.parquet``."""
     task = params.resolve(task_name)
     cfg = params.phase(phase)
     g = cfg.generate
-    source = model_dir(task.name, cfg.previous)
+    source = model_dir(task.name, cfg.previous, seed)
     bundle = load_bundle(root / source, device)
-    seed = derive_seed(g.seed, phase)
-    logged = {"generate": asdict(g), "alpha": params.alpha, "model": {"path": str(source)}}
-    generator = {"stage": "generate", "phase": phase, "model": str(source), "alpha": params.alpha, **asdict(g)}
-    with stage_run(task.name, "generate", phase, logged, root):
+    generation_seed = training_seed(derive_seed(g.seed, phase), seed)
+    logged = {"generate": asdict(g), "alpha": params.alpha, "model": {"path": str(source)}, "seed": seed}
+    generator = {
+        "stage": "generate",
+        "phase": phase,
+        "training_seed": seed,
+        "model": str(source),
+        "alpha": params.alpha,
+        **asdict(g),
+    }
+    with stage_run(task.name, "generate", phase, logged, root, seed=seed):
         planner = Planner(bundle, make_sampler(g.sampler, g.sampler_steps), device)
-        files = TaskFiles(root, task.name, source)
+        files = TaskFiles(root, task.name, source, seed)
         family = get_family(task.family)
-        traj, stats = family.generate(task, planner, files, g, params.alpha, seed, generator, progress)
-        out = root / generated_path(task.name, phase)
+        traj, stats = family.generate(task, planner, files, g, params.alpha, generation_seed, generator, progress)
+        out = root / generated_path(task.name, phase, seed)
         out.parent.mkdir(parents=True, exist_ok=True)
         write_trajectories(out, traj)
         mlflow.log_metrics(stats)

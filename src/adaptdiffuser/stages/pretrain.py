@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import mlflow
@@ -10,42 +10,60 @@ import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import make_bundle, save_bundle
-from adaptdiffuser.config import Params, TaskParams
+from adaptdiffuser.config import Params, PretrainParams, TaskParams
 from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.data.schema import Trajectories, read_trajectories
 from adaptdiffuser.data.windows import WindowDataset, joint_array, subset_episodes
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.plots import save_loss_curve
-from adaptdiffuser.stages.common import dataset_path, file_digest, model_dir
+from adaptdiffuser.seeding import training_seed
+from adaptdiffuser.stages.common import dataset_path, file_digest, model_dir, phase_models_dir, seed_name
 from adaptdiffuser.tracking import stage_run
 from adaptdiffuser.training import fingerprint, train
 
 
-def expert_training_data(task: TaskParams, root: Path) -> tuple[Trajectories, dict[str, str | float]]:
-    """The dataset episodes the models train on (``pretrain.expert_fraction`` of them, chosen with
-    ``pretrain.seed``, so every phase sees the same subset) and how to name them in logs."""
+def pretrain_config(task: TaskParams, seed: int) -> PretrainParams:
+    """Pretraining's settings for training seed ``seed`` (its seed derived from ``pretrain.seed`` and ``seed``)."""
+    return replace(task.pretrain, seed=training_seed(task.pretrain.seed, seed))
+
+
+def expert_training_data(task: TaskParams, root: Path, seed: int) -> tuple[Trajectories, dict[str, str | float]]:
+    """The dataset episodes the models of training seed ``seed`` train on (``pretrain.expert_fraction`` of them,
+    chosen with that seed's pretraining seed, so every phase sees the same subset) and how to name them in logs."""
     data_path = root / dataset_path(task.name)
     traj = read_trajectories(data_path)
     fraction = task.pretrain.expert_fraction
-    subset = subset_episodes(traj, fraction, np.random.default_rng(task.pretrain.seed))
+    subset = subset_episodes(traj, fraction, np.random.default_rng(pretrain_config(task, seed).seed))
     return subset, {"path": str(dataset_path(task.name)), "sha256": file_digest(data_path), "fraction": fraction}
 
 
 def run_pretrain(params: Params, task_name: str, root: Path, device: torch.device, progress: bool = True) -> Path:
-    """Stage ``pretrain@<task>`` (phase 0, the Diffuser baseline): train on the task's dataset, write
-    ``models/<task>/phase0``; the family chooses the normalizer and which plan steps are inpainted. Families whose
-    planner is value-guided get their value function trained next, into ``models/<task>/phase0/value``."""
+    """Stage ``pretrain@<task>`` (phase 0, the Diffuser baseline): for every training seed of ``seeds``, train on
+    the task's dataset and write ``models/<task>/phase0/seed<s>``; the family chooses the normalizer and which
+    plan steps are inpainted. Families whose planner is value-guided get each seed's value function trained next,
+    into ``models/<task>/phase0/seed<s>/value``."""
+    for seed in params.seeds:
+        pretrain_seed(params, task_name, root, device, seed, progress)
+    return root / phase_models_dir(task_name, 0)
+
+
+def pretrain_seed(
+    params: Params, task_name: str, root: Path, device: torch.device, seed: int, progress: bool = True
+) -> Path:
+    """Phase 0 for one training seed: ``models/<task>/phase0/seed<s>`` (and its value function)."""
     task = params.resolve(task_name)
     family = get_family(task.family)
-    traj, expert = expert_training_data(task, root)
+    traj, expert = expert_training_data(task, root, seed)
+    train_cfg = pretrain_config(task, seed)
     logged = {
         "model": task.section("model"),
         "diffusion": task.section("diffusion"),
-        "pretrain": task.section("pretrain"),
+        "pretrain": asdict(train_cfg),
         "data": {"expert": expert},
+        "seed": seed,
     }
-    with stage_run(task.name, "pretrain", 0, logged, root):
-        torch.manual_seed(task.pretrain.seed)
+    with stage_run(task.name, "pretrain", 0, logged, root, seed=seed):
+        torch.manual_seed(train_cfg.seed)
         normalizer = fit_normalizer(family.normalizer_kind, joint_array(traj))
         meta = traj.metadata
         bundle = make_bundle(
@@ -58,7 +76,8 @@ def run_pretrain(params: Params, task_name: str, root: Path, device: torch.devic
             family=task.family,
             conditioning=family.conditioning,
             phase=0,
-            pretrain=asdict(task.pretrain),
+            seed=seed,
+            pretrain=asdict(train_cfg),
             data=logged["data"],
         )
         dataset = WindowDataset(traj, task.diffusion.horizon, normalizer)
@@ -69,19 +88,19 @@ def run_pretrain(params: Params, task_name: str, root: Path, device: torch.devic
                 "parameters": sum(p.numel() for p in bundle.diffusion.parameters()),
             }
         )
-        resume = root / "models" / ".resume" / f"{task.name}-phase0.pt"
+        resume = root / "models" / ".resume" / f"{task.name}-phase0-{seed_name(seed)}.pt"
         resume.parent.mkdir(parents=True, exist_ok=True)
         history = train(
             bundle,
             dataset,
-            task.pretrain,
+            train_cfg,
             device,
             resume_path=resume,
             run_id=fingerprint(logged),
             progress=progress,
             on_log=lambda step, loss: mlflow.log_metric("train_loss", loss, step=step),
         )
-        out = root / model_dir(task.name, 0)
+        out = root / model_dir(task.name, 0, seed)
         save_bundle(out, bundle)
         curve = out / "train_loss.png"
         save_loss_curve(history, curve)
@@ -90,5 +109,5 @@ def run_pretrain(params: Params, task_name: str, root: Path, device: torch.devic
     if family.uses_value_function:
         from adaptdiffuser.stages.value import run_value
 
-        run_value(params, task.name, root, device, progress=progress)
+        run_value(params, task.name, root, device, seed, progress=progress)
     return out

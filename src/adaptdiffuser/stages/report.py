@@ -20,6 +20,7 @@ TABLE_COLUMNS = (
     "gain_stderr",
     "return_mean",
     "n_episodes",
+    "n_seeds",
     "kept",
 )
 
@@ -35,6 +36,7 @@ def score_table(task_summary: dict) -> list[dict]:
             {
                 "phase": int(key.removeprefix("phase_")),
                 **{k: entry[k] for k in ("score_mean", "score_stderr", "return_mean", "n_episodes")},
+                "n_seeds": entry.get("n_seeds", 1),
                 "control_score_mean": entry.get("control", {}).get("score_mean"),
                 "control_score_stderr": entry.get("control", {}).get("score_stderr"),
                 "gain_mean": entry.get("gain_mean"),
@@ -43,6 +45,43 @@ def score_table(task_summary: dict) -> list[dict]:
             }
         )
     return sorted(rows, key=lambda row: row["phase"])
+
+
+def _pm(mean: float | None, stderr: float | None) -> str:
+    return "" if mean is None else f"{mean:.1f} ± {stderr or 0.0:.1f}"
+
+
+def gains_table(summary: dict) -> list[str]:
+    """A Markdown table of every task's phases in ``metrics/summary.json``: score, control score and the gain over
+    the control, each mean ± standard error (over training seeds, or over episodes with one seed)."""
+    lines = [
+        "| task | phase | score | control (expert only, same steps) | gain over control | seeds x episodes | kept |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for task, task_summary in summary.items():
+        for row in score_table(task_summary):
+            lines.append(
+                f"| {task} | {row['phase']} | {_pm(row['score_mean'], row['score_stderr'])} "
+                f"| {_pm(row['control_score_mean'], row['control_score_stderr'])} "
+                f"| {_pm(row['gain_mean'], row['gain_stderr'])} | {row['n_seeds']} x {row['n_episodes']} "
+                f"| {row['kept']:g} |"
+            )
+    return lines
+
+
+def seed_points(task_summary: dict) -> dict[str, tuple[list[int], list[float]]]:
+    """``(phases, values)`` of every training seed's score and control score, from the summary's ``per_seed``."""
+    points: dict[str, tuple[list[int], list[float]]] = {"score_mean": ([], []), "control_score_mean": ([], [])}
+    for key, entry in task_summary.items():
+        if not key.startswith("phase_"):
+            continue
+        phase = int(key.removeprefix("phase_"))
+        for seed_entry in entry.get("per_seed", {}).values():
+            for name, (xs, ys) in points.items():
+                if name in seed_entry:
+                    xs.append(phase)
+                    ys.append(seed_entry[name])
+    return points
 
 
 def run_report(root: Path) -> dict[str, list[dict]]:
@@ -59,6 +98,7 @@ def run_report(root: Path) -> dict[str, list[dict]]:
             writer.writeheader()
             writer.writerows(rows)
         controls = [r for r in rows if r["control_score_mean"] is not None]
+        seeds = seed_points(task_summary)
         save_score_by_phase(
             [r["phase"] for r in rows],
             [r["score_mean"] for r in rows],
@@ -69,6 +109,8 @@ def run_report(root: Path) -> dict[str, list[dict]]:
                 [r["control_score_mean"] for r in controls],
                 [r["control_score_stderr"] for r in controls],
             ),
+            seed_points=seeds["score_mean"],
+            control_seed_points=seeds["control_score_mean"],
         )
         tables[task] = rows
     return tables

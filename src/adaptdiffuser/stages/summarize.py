@@ -16,6 +16,24 @@ from adaptdiffuser.stages.common import (
 
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean")
 GAIN_KEYS = ("gain_mean", "gain_stderr")
+PER_SEED_KEYS = ("score_mean", "score_stderr", "gain_mean", "gain_stderr")
+
+
+def _without_seeds(metrics: dict) -> dict:
+    """A metrics file's aggregate over training seeds (its ``seeds`` entry removed)."""
+    return {key: value for key, value in metrics.items() if key != "seeds"}
+
+
+def _per_seed(metrics: dict, control: dict | None) -> dict[str, dict]:
+    """Each training seed's score (and gain over its control), for the report's per-seed points."""
+    out = {}
+    for seed, m in metrics.get("seeds", {}).items():
+        row = {k: m[k] for k in PER_SEED_KEYS if k in m}
+        if control is not None:
+            c = control["seeds"][seed]
+            row |= {"control_score_mean": c["score_mean"], **{k: c[k] for k in GAIN_KEYS}}
+        out[seed] = row
+    return out
 
 
 def task_phases(params: Params, task: str) -> list[int]:
@@ -25,9 +43,12 @@ def task_phases(params: Params, task: str) -> list[int]:
 
 def run_summarize(params: Params, root: Path) -> dict:
     """``{task: {"dataset": {...}?, "phase_k": {score_mean, score_stderr, ..., gain_mean?, gain_stderr?,
-    "control"?, "discriminator"?}}}``: each phase's evaluation metrics, its gold-coin metrics where the task has
-    them; for evolution phases the discriminator counts, the equal-compute control's metrics and the gain of the
-    phase over it (paired over episodes); and the dataset's own score where the reference stage measured it."""
+    "control"?, "discriminator"?, "per_seed"}}}``: each phase's evaluation metrics, its gold-coin metrics where the
+    task has them; for evolution phases the discriminator counts, the equal-compute control's metrics and the gain
+    of the phase over it; and the dataset's own score where the reference stage measured it.
+
+    Means and standard errors are over training seeds (over episodes with one seed: ``stderr_over``); the
+    discriminator counts are means over seeds; ``per_seed`` has each seed's score and gain."""
     summary: dict[str, dict] = {}
     for task in params.tasks:
         entry: dict[str, dict] = {}
@@ -35,18 +56,23 @@ def run_summarize(params: Params, root: Path) -> dict:
         if "dataset" in ref:
             entry["dataset"] = ref["dataset"]
         for k in task_phases(params, task):
-            phase = read_json(root / phase_metrics_path(task, k), f"metrics of {task} phase {k} (run its evaluate)")
+            metrics = read_json(root / phase_metrics_path(task, k), f"metrics of {task} phase {k} (run its evaluate)")
+            phase = _without_seeds(metrics)
             if task in params.coin_tasks:
                 coin = read_json(root / coin_metrics_path(task, k), f"gold-coin metrics of {task} phase {k}")
-                phase.update(coin)
+                phase["gold_coin"] = coin["gold_coin"]
+            control = None
             if k > 0:
                 report = read_json(root / discriminator_metrics_path(task, k), f"discriminator report of phase {k}")
                 phase["discriminator"] = {key: report[key] for key in SUMMARY_DISCRIMINATOR_KEYS}
                 control = read_json(
                     root / phase_metrics_path(task, k, control=True), f"metrics of {task} phase {k}'s control"
                 )
-                phase.update({key: control.pop(key) for key in GAIN_KEYS})
-                phase["control"] = {key: value for key, value in control.items() if not key.startswith("gain_")}
+                phase.update({key: control[key] for key in GAIN_KEYS})
+                phase["control"] = {
+                    key: value for key, value in _without_seeds(control).items() if not key.startswith("gain_")
+                }
+            phase["per_seed"] = _per_seed(metrics, control)
             entry[f"phase_{k}"] = phase
         summary[task] = entry
     write_json(root / SUMMARY, summary)

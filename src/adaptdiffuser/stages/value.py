@@ -13,21 +13,30 @@ from adaptdiffuser.config import Params
 from adaptdiffuser.data.returns import ValueWindowDataset
 from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.plots import save_loss_curve
+from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.common import model_dir, value_dir
 from adaptdiffuser.stages.pretrain import expert_training_data
 from adaptdiffuser.tracking import stage_run
 from adaptdiffuser.value_training import save_value, train_value
 
 
-def run_value(params: Params, task_name: str, root: Path, device: torch.device, progress: bool = True) -> Path:
-    """Regress the discounted return-to-go of the phase-0 model's training windows, noised
-    with its diffusion schedule and scaled by its normalizer; write ``models/<task>/phase0/value``."""
+def run_value(
+    params: Params, task_name: str, root: Path, device: torch.device, seed: int, progress: bool = True
+) -> Path:
+    """Regress the discounted return-to-go of training seed ``seed``'s phase-0 training windows, noised with its
+    diffusion schedule and scaled by its normalizer; write ``models/<task>/phase0/seed<s>/value``."""
     task = params.resolve(task_name)
-    settings, net_settings = task.settings.value, task.settings.value_model
-    bundle = load_bundle(root / model_dir(task.name, 0), "cpu")
-    traj, data = expert_training_data(task, root)
-    logged = {"value": settings.model_dump(), "value_model": net_settings.model_dump(), "data": {"expert": data}}
-    with stage_run(task.name, "value", 0, logged, root):
+    net_settings = task.settings.value_model
+    settings = task.settings.value.model_copy(update={"seed": training_seed(task.settings.value.seed, seed)})
+    bundle = load_bundle(root / model_dir(task.name, 0, seed), "cpu")
+    traj, data = expert_training_data(task, root, seed)
+    logged = {
+        "value": settings.model_dump(),
+        "value_model": net_settings.model_dump(),
+        "data": {"expert": data},
+        "seed": seed,
+    }
+    with stage_run(task.name, "value", 0, logged, root, seed=seed):
         dataset = ValueWindowDataset(
             traj, task.diffusion.horizon, bundle.normalizer, settings.discount, settings.terminal_penalty
         )
@@ -49,7 +58,7 @@ def run_value(params: Params, task_name: str, root: Path, device: torch.device, 
             progress=progress,
             on_log=lambda step, loss: mlflow.log_metric("value_loss", loss, step=step),
         )
-        out = root / value_dir(task.name)
+        out = root / value_dir(task.name, seed)
         save_value(out, net.cpu(), {"settings": settings.model_dump(), "task": task.name, "data": data})
         curve = out / "value_loss.png"  # written after the atomic folder exists
         save_loss_curve(history, curve)

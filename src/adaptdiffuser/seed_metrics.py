@@ -1,0 +1,76 @@
+"""Metrics over training seeds: a stage that runs once per seed writes one metrics file holding each seed's
+metrics and their aggregate, so every reader (summary, report, sweep) sees one number per phase.
+
+Episodes are averaged within a seed first; the aggregate of every number is its mean over seeds, and every
+``<name>_stderr`` beside a ``<name>_mean`` (or a ``<name>``) becomes the standard error of that mean over seeds
+when there are two or more. With one seed the aggregate is that seed's metrics unchanged (the standard errors are
+then over episodes: ``stderr_over`` says which)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def standard_error_over(values: list[float]) -> float:
+    """Standard error of the mean of ``values`` (sample standard deviation / sqrt(n)); 0 for a single value."""
+    if len(values) < 2:
+        return 0.0
+    return float(np.std(values, ddof=1) / np.sqrt(len(values)))
+
+
+def _mean_of(values: list[Any]) -> Any:
+    """Numbers: their mean (ints stay ints when all seeds agree); mappings: key by key; anything else: the common
+    value, or None when seeds differ."""
+    first = values[0]
+    if all(_is_number(v) for v in values):
+        if all(isinstance(v, int) for v in values) and len(set(values)) == 1:
+            return first
+        return float(np.mean(values))
+    if all(isinstance(v, Mapping) for v in values):
+        keys = [k for k in first if all(k in v for v in values)]
+        return {k: _mean_of([v[k] for v in values]) for k in keys}
+    return first if all(v == first for v in values) else None
+
+
+def _spread_over_seeds(merged: dict[str, Any], values: list[Mapping[str, Any]]) -> bool:
+    """Replace, in place and at every depth, each ``<name>_stderr`` by the standard error over seeds of its
+    ``<name>_mean`` (or ``<name>``); whether there was any."""
+    found = False
+    for key in list(merged):
+        if isinstance(merged[key], dict):
+            found |= _spread_over_seeds(merged[key], [v[key] for v in values])
+        elif key.endswith("_stderr"):
+            name = key.removesuffix("_stderr")
+            mean = next((m for m in (f"{name}_mean", name) if m in merged and _is_number(merged[m])), None)
+            if mean is not None:
+                merged[key] = standard_error_over([float(v[mean]) for v in values])
+                found = True
+    return found
+
+
+def _has_stderr(metrics: Mapping[str, Any]) -> bool:
+    return any(k.endswith("_stderr") or (isinstance(v, Mapping) and _has_stderr(v)) for k, v in metrics.items())
+
+
+def over_seeds(per_seed: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
+    """One metrics dict for several training seeds: every number averaged over seeds, standard errors taken over
+    seeds (with two or more), ``n_seeds`` and each seed's metrics under ``seeds``."""
+    if not per_seed:
+        raise ValueError("no training seed's metrics to aggregate")
+    seeds = list(per_seed)
+    values = [per_seed[s] for s in seeds]
+    merged: dict[str, Any] = _mean_of(values)
+    if len(seeds) > 1:
+        _spread_over_seeds(merged, values)
+    if _has_stderr(merged):
+        merged["stderr_over"] = "seeds" if len(seeds) > 1 else "episodes"
+    merged["n_seeds"] = len(seeds)
+    merged["seeds"] = {str(s): dict(per_seed[s]) for s in seeds}
+    return merged

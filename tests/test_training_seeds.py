@@ -1,0 +1,128 @@
+"""Training seeds as a dimension (smoke profile, real training, simulator, Parquet and MLflow): every training
+stage runs once per entry of ``seeds``; seed 0 is the run a one-seed project makes; metrics files hold each seed's
+metrics and their mean and standard error over seeds; the summary and report carry the per-seed points."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from adaptdiffuser.checkpoint import load_bundle
+from adaptdiffuser.config import Params, apply_profile, params_from_dict
+from adaptdiffuser.seed_metrics import over_seeds, standard_error_over
+from adaptdiffuser.seeding import training_seed
+from adaptdiffuser.stages.collect import run_collect
+from adaptdiffuser.stages.common import model_dir, phase_metrics_path, results_dir, selected_path
+from adaptdiffuser.stages.discriminate import run_discriminate
+from adaptdiffuser.stages.evaluate import run_evaluate
+from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
+from adaptdiffuser.stages.finetune import run_finetune
+from adaptdiffuser.stages.generate import run_generate
+from adaptdiffuser.stages.pretrain import run_pretrain
+from adaptdiffuser.stages.reference import run_reference
+from adaptdiffuser.stages.report import run_report, seed_points
+from adaptdiffuser.stages.summarize import run_summarize
+
+REPO = Path(__file__).resolve().parents[1]
+CPU = torch.device("cpu")
+TASK = "maze2d-umaze"
+
+
+def _params(root: Path, seeds: list[int]) -> Params:
+    raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", root / "params.yaml").read_text())
+    raw.update(tasks=[TASK], coin_tasks=[TASK], evolve=TASK, seeds=seeds)
+    raw["phases"] = {"phase1": {"previous": 0}}
+    return params_from_dict(raw)
+
+
+@pytest.fixture(scope="module")
+def two_seeds(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Params]:
+    """Phase 0 and phase 1 (with its control) for training seeds 0 and 3."""
+    root = tmp_path_factory.mktemp("seeds")
+    params = _params(root, [0, 3])
+    run_collect(params, TASK, root, progress=False)
+    run_reference(params, TASK, root, progress=False)
+    run_pretrain(params, TASK, root, CPU, progress=False)
+    run_evaluate(params, TASK, root, 0, CPU, progress=False)
+    run_evaluate_coin(params, TASK, root, 0, CPU, progress=False)
+    run_generate(params, TASK, root, 1, CPU, progress=False)
+    run_discriminate(params, TASK, root, 1, progress=False)
+    run_finetune(params, TASK, root, 1, CPU, progress=False)
+    run_finetune(params, TASK, root, 1, CPU, progress=False, control=True)
+    run_evaluate(params, TASK, root, 1, CPU, progress=False)
+    run_evaluate(params, TASK, root, 1, CPU, progress=False, control=True)
+    run_evaluate_coin(params, TASK, root, 1, CPU, progress=False)
+    return root, params
+
+
+def _weights(path: Path) -> list[torch.Tensor]:
+    return [p.detach().clone() for p in load_bundle(path).diffusion.parameters()]
+
+
+def test_training_seed_zero_keeps_the_params_seed() -> None:
+    assert training_seed(7, 0) == 7
+    assert len({training_seed(7, s) for s in range(5)}) == 5 and training_seed(7, 1) == training_seed(7, 1)
+
+
+def test_every_training_stage_runs_once_per_seed(two_seeds: tuple[Path, Params]) -> None:
+    root, _ = two_seeds
+    for phase, control in ((0, False), (1, False), (1, True)):
+        a, b = (_weights(root / model_dir(TASK, phase, s, control)) for s in (0, 3))
+        assert not all(torch.equal(x, y) for x, y in zip(a, b, strict=True)), (phase, control)
+    assert load_bundle(root / model_dir(TASK, 1, 3)).config["seed"] == 3
+    for seed in (0, 3):  # each seed's phase 1 trains on the data its own phase 0 generated
+        assert (root / selected_path(TASK, 1, seed)).exists()
+        assert (root / results_dir(TASK, 1, seed) / "episodes.parquet").exists()
+
+
+def test_seed_zero_of_several_is_the_one_seed_run(two_seeds: tuple[Path, Params], tmp_path: Path) -> None:
+    root, _ = two_seeds
+    alone = _params(tmp_path, [0])
+    (tmp_path / "data").symlink_to(root / "data")
+    run_pretrain(alone, TASK, tmp_path, CPU, progress=False)
+    ours, theirs = _weights(tmp_path / model_dir(TASK, 0, 0)), _weights(root / model_dir(TASK, 0, 0))
+    assert all(torch.equal(x, y) for x, y in zip(ours, theirs, strict=True))
+
+
+def test_metrics_are_aggregated_over_seeds(two_seeds: tuple[Path, Params]) -> None:
+    root, _ = two_seeds
+    for phase, control in ((0, False), (1, False), (1, True)):
+        metrics = json.loads((root / phase_metrics_path(TASK, phase, control)).read_text())
+        per_seed = [metrics["seeds"][s]["score_mean"] for s in ("0", "3")]
+        assert metrics["n_seeds"] == 2 and metrics["stderr_over"] == "seeds"
+        assert metrics["score_mean"] == pytest.approx(np.mean(per_seed))
+        assert metrics["score_stderr"] == pytest.approx(abs(per_seed[0] - per_seed[1]) / 2)
+        assert metrics["n_episodes"] == metrics["seeds"]["0"]["n_episodes"]  # episodes per seed
+    control = json.loads((root / phase_metrics_path(TASK, 1, control=True)).read_text())
+    gains = [control["seeds"][s]["gain_mean"] for s in ("0", "3")]
+    assert control["gain_mean"] == pytest.approx(np.mean(gains))
+    assert control["gain_stderr"] == pytest.approx(standard_error_over(gains))
+
+
+def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> None:
+    root, params = two_seeds
+    summary = run_summarize(params, root)[TASK]
+    phase1 = summary["phase_1"]
+    assert set(phase1["per_seed"]) == {"0", "3"} and "seeds" not in phase1
+    assert phase1["control"]["n_seeds"] == 2
+    coin = json.loads((root / f"metrics/tasks/{TASK}/phase1-coin.json").read_text())
+    rates = [coin["seeds"][s]["gold_coin"]["both_rate"] for s in ("0", "3")]
+    assert phase1["gold_coin"]["both_rate"] == pytest.approx(np.mean(rates))
+    assert phase1["gold_coin"]["both_rate_stderr"] == pytest.approx(standard_error_over(rates))
+    assert phase1["gain_mean"] == pytest.approx(np.mean([e["gain_mean"] for e in phase1["per_seed"].values()]))
+    points = seed_points(summary)
+    assert points["score_mean"][0] == [0, 0, 1, 1] and points["control_score_mean"][0] == [1, 1]
+    rows = run_report(root)[TASK]
+    assert [r["n_seeds"] for r in rows] == [2, 2]
+
+
+def test_over_seeds_with_one_seed_changes_nothing_but_adds_the_seed() -> None:
+    metrics = {"score_mean": 50.0, "score_stderr": 2.0, "n_episodes": 10, "gold_coin": {"both_rate": 0.5}}
+    merged = over_seeds({0: metrics})
+    assert {k: merged[k] for k in metrics} == metrics
+    assert merged["stderr_over"] == "episodes" and merged["n_seeds"] == 1 and merged["seeds"] == {"0": metrics}
