@@ -1,6 +1,11 @@
 """Maze2D's evolution phases: goal-conditioned plans for random (start, goal) cells, a quarter of them guided toward
 a gold coin; the discriminator follows each plan with the evaluation's PD follower and keeps plans by the paper's
-reward/length rule (or a generic one), and coin plans when the coin was picked before the goal."""
+reward/length rule (or a generic one), and coin plans when the coin was picked before the goal.
+
+``task.<name>.evolution.recipe`` chooses how: ``plans`` (one open-loop plan of the horizon per task, tracked by the
+discriminator) or ``rollouts`` (closed-loop rollouts that replan and end at the goal, see :mod:`.rollouts`, judged
+as executed with their real length).
+"""
 
 from __future__ import annotations
 
@@ -11,9 +16,27 @@ import numpy as np
 
 from adaptdiffuser.config import DiscriminateParams, GenerateParams, TaskParams
 from adaptdiffuser.data.schema import Trajectories
-from adaptdiffuser.evolution.discriminator import Judgement, discriminate, planned_trajectory
-from adaptdiffuser.evolution.generate import generate_plans, split_task_trajectories, task_trajectories
+from adaptdiffuser.evolution.discriminator import (
+    Judgement,
+    SelectionRule,
+    TrackedTrajectory,
+    discriminate,
+    planned_trajectory,
+)
+from adaptdiffuser.evolution.generate import (
+    NavigationTasks,
+    generate_plans,
+    split_task_trajectories,
+    task_trajectories,
+)
 from adaptdiffuser.families.maze2d.execution import PlanFollower
+from adaptdiffuser.families.maze2d.rollouts import (
+    ERROR_COLUMN,
+    reached_goal,
+    real_length,
+    run_rollouts,
+    settle_at_goal,
+)
 from adaptdiffuser.families.maze2d.selection import picks_coin_then_reaches_goal
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.families.maze2d.tasks import add_coins, sample_navigation_tasks
@@ -30,11 +53,11 @@ def generate_navigation_data(
     generator: dict[str, Any],
     progress: bool,
 ) -> tuple[Trajectories, dict[str, float]]:
-    """One plan per random task, taken at its word (planned states, actions and reward), with the task columns."""
-    rng = np.random.default_rng(seed)
-    tasks = sample_navigation_tasks(env, cfg.tasks, rng, cfg.cell_spread)
-    if cfg.coin_fraction > 0:
-        tasks = add_coins(env, tasks, cfg.coin_fraction, rng)
+    """One plan per random task, taken at its word (planned states, actions and reward), with the task columns; or,
+    with ``evolution.recipe: rollouts``, one closed-loop rollout per task (:func:`generate_rollout_data`)."""
+    tasks = generation_tasks(env, cfg, seed)
+    if task.settings.evolution.recipe == "rollouts":
+        return generate_rollout_data(env, task, planner, tasks, cfg, alpha, seed, generator, progress)
     plans = generate_plans(planner, tasks, cfg.batch_size, seed, alpha=alpha, progress=progress)
     act_dim = planner.act_dim
     planned = [
@@ -51,11 +74,67 @@ def generate_navigation_data(
     return traj, stats
 
 
+def generation_tasks(env: Maze2D, cfg: GenerateParams, seed: int) -> NavigationTasks:
+    """The phase's random (start, goal) tasks, the last ``cfg.coin_fraction`` of them with a coin."""
+    rng = np.random.default_rng(seed)
+    tasks = sample_navigation_tasks(env, cfg.tasks, rng, cfg.cell_spread)
+    if cfg.coin_fraction > 0:
+        tasks = add_coins(env, tasks, cfg.coin_fraction, rng)
+    return tasks
+
+
+def generate_rollout_data(
+    env: Maze2D,
+    task: TaskParams,
+    planner: Planner,
+    tasks: NavigationTasks,
+    cfg: GenerateParams,
+    alpha: float,
+    seed: int,
+    generator: dict[str, Any],
+    progress: bool,
+) -> tuple[Trajectories, dict[str, float]]:
+    """One closed-loop rollout per task in fresh simulators like ``env`` (replanning every
+    ``evolution.replan_every`` steps, ending at the goal or after the episode length): the executed states, actions
+    and rewards, unpadded, with the task columns and each step's tracking error (column ``tracking_error``)."""
+    from adaptdiffuser.families.registry import get_family
+
+    family = get_family(task.family)
+    rollouts = run_rollouts(
+        lambda: family.make_simulator(task),
+        planner,
+        tasks,
+        seed,
+        task.settings.evolution.replan_every,
+        env.episode_steps,
+        cfg.batch_size,
+        alpha=alpha,
+        coin_radius=task.settings.gold_coin.radius,
+        progress=progress,
+    )
+    traj = task_trajectories(rollouts, tasks, np.arange(len(tasks)), task.name, generator)
+    traj.extra[ERROR_COLUMN] = np.concatenate([np.concatenate([[0.0], r.errors]) for r in rollouts]).astype(np.float32)
+    reached = np.array([reached_goal(r) for r in rollouts])
+    lengths = np.array([real_length(r) for r in rollouts])
+    stats = {
+        "generated": len(tasks),
+        "coin_tasks": int(tasks.has_coin().sum()),
+        "rollout_reach_rate": float(reached.mean()),
+        "rollout_length_mean": float(lengths.mean()),
+        "rollout_length_reached_mean": float(lengths[reached].mean()) if reached.any() else -1.0,
+        "rollout_steps": int(sum(len(r.observations) - 1 for r in rollouts)),
+    }
+    return traj, stats
+
+
 def judge_navigation_data(
     env: Maze2D, task: TaskParams, generated: Trajectories, cfg: DiscriminateParams, rule: Any, progress: bool
 ) -> Judgement:
     """Track every plan from its first state with the plan follower; select navigation plans by ``rule`` and coin
-    plans that pick their coin and then reach the goal."""
+    plans that pick their coin and then reach the goal. Rollouts are judged as executed
+    (:func:`judge_rollouts`)."""
+    if task.settings.evolution.recipe == "rollouts":
+        return judge_rollouts(env, task, generated, cfg, rule)
     states, actions, tasks = split_task_trajectories(generated)
     return discriminate(
         env,
@@ -71,10 +150,77 @@ def judge_navigation_data(
     )
 
 
+def rollout_trajectory(
+    env: Maze2D, states: np.ndarray, actions: np.ndarray, goal: np.ndarray, errors: np.ndarray | None
+) -> TrackedTrajectory:
+    """A generated rollout as the discriminator sees it: its states and actions, the protocol's reward of each state
+    for its own ``goal``, and its per-step tracking errors (zeros when the file has none)."""
+    env.set_goal_state(goal)
+    rewards = np.array([env.reward(x) for x in states], dtype=np.float64)
+    hits = np.flatnonzero(rewards > 0)
+    step_errors = np.zeros(len(states) - 1) if errors is None else np.asarray(errors, dtype=np.float64)[1:]
+    return TrackedTrajectory(states, actions, step_errors, rewards, int(hits[0]) if len(hits) else -1)
+
+
+def judge_rollouts(
+    env: Maze2D, task: TaskParams, generated: Trajectories, cfg: DiscriminateParams, rule: SelectionRule
+) -> Judgement:
+    """Rollouts were executed as they were made, so every one "tracks": each is scored by the protocol's reward
+    of its states (against its own goal) and its real length (:func:`real_length`); navigation rollouts are kept
+    by ``rule`` (a :class:`~adaptdiffuser.families.maze2d.selection.RolloutRule`), coin rollouts when they pick
+    their coin and then reach the goal."""
+    if not cfg.tracking:
+        raise ValueError("rollouts are executed as they are made: evolution.discriminate.tracking must be true")
+    states, actions, tasks = split_task_trajectories(generated)
+    errors = generated.extra.get(ERROR_COLUMN)
+    judged = [
+        rollout_trajectory(env, s, a, goal, None if errors is None else errors[ep])
+        for ep, s, a, goal in zip(generated.episodes(), states, actions, tasks.goals, strict=True)
+    ]
+    coin = tasks.has_coin()
+    nav = np.flatnonzero(~coin)
+    returns = np.array([judged[i].total_reward for i in nav])
+    kept = nav[rule.select(returns, np.array([real_length(judged[i]) for i in nav], dtype=np.int64))]
+    check = partial(picks_coin_then_reaches_goal, radius=task.settings.gold_coin.radius)
+    coin_kept = [i for i in np.flatnonzero(coin) if reached_goal(judged[i]) and check(judged[i], tasks.coins[i])]
+    kept = np.concatenate([kept, np.asarray(coin_kept, dtype=np.int64)])
+    return Judgement(trajectories=judged, passed_tracking=np.ones(len(judged), dtype=bool), kept=kept, coin_tasks=coin)
+
+
+def arrival_step(trajectory: TrackedTrajectory, coin: np.ndarray | None, radius: float) -> int:
+    """The first state at the goal (for a coin task, at or after the first state within ``radius`` of the coin);
+    -1 if there is none."""
+    first = 0
+    if coin is not None and not np.isnan(coin).any():
+        near = np.flatnonzero(np.linalg.norm(trajectory.observations[:, :2] - coin[None, :2], axis=1) <= radius)
+        if not len(near):
+            return -1
+        first = int(near[0])
+    hits = np.flatnonzero(trajectory.rewards[first:] > 0)
+    return first + int(hits[0]) if len(hits) else -1
+
+
+def stay_after_arrival(trajectory: TrackedTrajectory, coin: np.ndarray | None, radius: float) -> TrackedTrajectory:
+    """A kept plan's trajectory cut where it arrives at the goal (:func:`arrival_step`), at rest there for the rest
+    of its length; unchanged if it never arrives."""
+    stop = arrival_step(trajectory, coin, radius)
+    return trajectory if stop < 0 else settle_at_goal(trajectory, stop, len(trajectory.observations))
+
+
 def selected_navigation_data(
     task: TaskParams, generated: Trajectories, judgement: Judgement, generator: dict[str, Any]
 ) -> Trajectories:
-    """The kept executed trajectories, each row naming its task."""
+    """The kept executed trajectories, each row naming its task. Kept rollouts (all of them end at the goal) go on
+    at rest at the goal for a horizon less one state, so every step of a rollout starts a training window that
+    reaches the goal and stays; with ``evolution.stay_at_goal``, kept plans are cut where they arrive at the goal
+    and stay there for the rest of the horizon."""
     _, _, tasks = split_task_trajectories(generated)
     kept = [judgement.trajectories[i] for i in judgement.kept]
+    evolution, h = task.settings.evolution, task.diffusion.horizon
+    if evolution.recipe == "rollouts":
+        kept = [settle_at_goal(t, len(t.observations) - 1, len(t.observations) + h - 1) for t in kept]
+    elif evolution.stay_at_goal:
+        coins = tasks.coins[judgement.kept] if tasks.coins is not None else [None] * len(kept)
+        radius = task.settings.gold_coin.radius
+        kept = [stay_after_arrival(t, c, radius) for t, c in zip(kept, coins, strict=True)]
     return task_trajectories(kept, tasks, judgement.kept, task.name, generator)

@@ -106,23 +106,28 @@ class Maze2DFamily(Family):
 
     def selection_rule(self, task: TaskParams, cfg: DiscriminateParams) -> SelectionRule:
         """The discriminator's rule for the navigation tasks of ``task``'s evolution: under ``rule: paper`` the
-        appendix's thresholds for its maze, else the generic rule ``cfg.rule`` names."""
+        appendix's thresholds for its maze, else the generic rule ``cfg.rule`` names; for the ``rollouts`` recipe
+        that rule among the rollouts that reach their goal, on their real length (``RolloutRule``)."""
         from adaptdiffuser.evolution.discriminator import generic_selection_rule
-        from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES
+        from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, RolloutRule
 
-        if cfg.rule == "paper":
-            return PAPER_MAZE_RULES[task.settings.env.maze]
-        return generic_selection_rule(cfg)
+        paper = cfg.rule == "paper"
+        rule = PAPER_MAZE_RULES[task.settings.env.maze] if paper else generic_selection_rule(cfg)
+        if task.settings.evolution.recipe == "rollouts":
+            return RolloutRule(rule, task.settings.episode_steps, rank_by_episode_return=not paper)
+        return rule
 
     def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
-        """Plans for random (start, goal) cells, ``cfg.coin_fraction`` of them guided toward a coin (``alpha``)."""
+        """Plans (or, with ``evolution.recipe: rollouts``, closed-loop rollouts) for random (start, goal) cells,
+        ``cfg.coin_fraction`` of them guided toward a coin (``alpha``)."""
         from adaptdiffuser.families.maze2d.evolution import generate_navigation_data
 
         env = self.make_simulator(task)
         return generate_navigation_data(env, task, planner, cfg, alpha, seed, generator, progress)
 
     def discriminate(self, task, generated, cfg, phase, files, progress):
-        """Follow every plan with the PD follower; the paper's rule (or a generic one) on real reward and length."""
+        """Follow every plan with the PD follower (rollouts were executed already); the paper's rule (or a generic
+        one) on real reward and length."""
         from adaptdiffuser.families.maze2d.evolution import judge_navigation_data
 
         env = self.make_simulator(task)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import field
-from typing import TYPE_CHECKING, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
 
 from pydantic import ValidationInfo, field_validator
 from pydantic.dataclasses import dataclass
@@ -18,6 +18,7 @@ from adaptdiffuser.config.fields import (
     PositiveInt,
     Seed,
     Str,
+    one_of,
 )
 from adaptdiffuser.config.sections import SECTION
 from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, parse_layout
@@ -27,6 +28,8 @@ if TYPE_CHECKING:
     from adaptdiffuser.config.tasks import TaskParams
 
 PAPER_RULE_MAZES = ("umaze", "medium", "large")
+#: how an evolution phase makes its synthetic data (see :class:`EvolutionSettings`)
+RECIPES = ("plans", "rollouts")
 CUSTOM_EPISODE_STEPS = 300  # what the simulator uses for a custom layout when env.episode_steps is null
 
 
@@ -79,6 +82,25 @@ class GoldCoinParams:
 
 
 @dataclass(frozen=True, config=SECTION)
+class EvolutionSettings:
+    """How a Maze2D task's evolution phases make synthetic data (``task.<name>.evolution``).
+
+    ``recipe: plans`` (the default): one open-loop plan of the model's horizon per random (start, goal) task, tracked
+    by the plan follower in the discriminator, the paper's rule applied with L = the horizon. ``recipe: rollouts``
+    (the author's recipe, official AdaptDiffuser repository, issue 7): closed-loop rollouts in the simulator that
+    replan every ``replan_every`` steps (0: plan once) and end when the goal is reached or after the maze's episode
+    length; the discriminator keeps those that reach the goal by the rule with L = the steps taken to reach it, and
+    the kept rollouts are padded by staying at the goal for a horizon, so the model learns plans that reach it and
+    stay. ``stay_at_goal`` does the same for the ``plans`` recipe's kept trajectories: cut where they first reach
+    the goal and fill the rest of the horizon by staying there (off by default: the plans recipe as it always was).
+    """
+
+    recipe: Annotated[Str, one_of(*RECIPES)] = "plans"
+    replan_every: NonNegativeInt = 32
+    stay_at_goal: Bool = False
+
+
+@dataclass(frozen=True, config=SECTION)
 class Maze2DTaskParams:
     """A Maze2D task: the maze and its protocol (``env``), the waypoint expert, data collection and the unseen
     gold-coin evaluation."""
@@ -90,6 +112,7 @@ class Maze2DTaskParams:
     expert: ExpertParams = field(default_factory=ExpertParams)
     collect: CollectParams = field(default_factory=CollectParams)
     gold_coin: GoldCoinParams = field(default_factory=GoldCoinParams)
+    evolution: EvolutionSettings = field(default_factory=EvolutionSettings)
 
     @property
     def maze_name(self) -> str:
@@ -105,7 +128,8 @@ class Maze2DTaskParams:
         return EPISODE_STEPS.get(self.env.maze, CUSTOM_EPISODE_STEPS)
 
     def check(self, task: TaskParams, params: Params) -> None:
-        """Episodes at least one plan long; the paper's selection rule only where it has thresholds."""
+        """Episodes at least one plan long; the paper's selection rule only where it has thresholds; rollouts
+        replan within a plan's length and are judged as executed."""
         where = f"task.{task.name}"
         h = task.diffusion.horizon
         if self.episode_steps < h:
@@ -125,6 +149,24 @@ class Maze2DTaskParams:
                 raise ConfigError(
                     f"phases.{phase.name}.discriminate.rule: the rule 'paper' has thresholds for umaze, medium and "
                     f"large only ({task.name} is not one); set evolution.discriminate.rule to quantile or top_k"
+                )
+        if self.evolution.recipe == "rollouts":
+            self._check_rollouts(task, params)
+
+    def _check_rollouts(self, task: TaskParams, params: Params) -> None:
+        where = f"task.{task.name}.evolution"
+        h = task.diffusion.horizon
+        if self.evolution.replan_every > h:
+            raise ConfigError(
+                f"{where}.replan_every: {self.evolution.replan_every} exceeds diffusion.horizon={h} (a plan's "
+                f"length); use 1..{h}, or 0 to plan once per rollout"
+            )
+        for phase in params.phases:
+            if not phase.discriminate.tracking:
+                raise ConfigError(
+                    f"phases.{phase.name}.discriminate.tracking: {where}.recipe is rollouts, which are executed "
+                    "in the simulator as they are made; tracking must be true (the no-simulator ablation needs "
+                    "recipe: plans)"
                 )
 
 

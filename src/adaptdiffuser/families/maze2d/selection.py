@@ -1,5 +1,5 @@
 """What the discriminator keeps of generated Maze2D trajectories beyond the generic rules: the paper's reward/length
-rule with its thresholds per maze, and the check of coin tasks."""
+rule with its thresholds per maze, the selection among closed-loop rollouts, and the check of coin tasks."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from adaptdiffuser.evolution.discriminator import TrackedTrajectory
+    from adaptdiffuser.evolution.discriminator import SelectionRule, TrackedTrajectory
 
 
 @dataclass(frozen=True)
@@ -46,3 +46,27 @@ def picks_coin_then_reaches_goal(trajectory: TrackedTrajectory, coin: np.ndarray
     is at the goal."""
     near = np.flatnonzero(np.linalg.norm(trajectory.observations[:, :2] - coin[None, :2], axis=1) <= radius)
     return bool(len(near)) and bool((trajectory.rewards[near[0] :] > 0).any())
+
+
+@dataclass(frozen=True)
+class RolloutRule:
+    """Selection among rollouts, whose length ``L`` is the real one (steps until the goal is first reached, or the
+    whole rollout when it never is) and whose return ``R`` is 1 when they reach the goal (they end there) and 0
+    otherwise. Only rollouts that reach the goal are candidates (a rollout that never does is as long as an
+    episode, which the paper's ``L > long_length`` clause would keep); among them ``inner`` decides: the paper's
+    rule on ``(R, L)`` (where ``R + (episode_steps - L)`` is exactly the protocol's return of an episode that
+    reaches the goal after L steps and stays), or a generic rule (``quantile``, ``top_k``) ranking by that same
+    episode return, so shorter paths rank higher."""
+
+    inner: SelectionRule
+    episode_steps: int
+    rank_by_episode_return: bool
+
+    def select(self, returns: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        returns, lengths = np.asarray(returns, dtype=np.float64), np.asarray(lengths, dtype=np.int64)
+        reached = np.flatnonzero(returns > 0)
+        if not len(reached):
+            return reached
+        r, n = returns[reached], lengths[reached]
+        scores = r + (self.episode_steps - n) if self.rank_by_episode_return else r
+        return reached[self.inner.select(scores, n)]
