@@ -1,7 +1,9 @@
 """Model bundles on disk: weights, EMA weights, normalizer and the config they were trained with.
 
 A bundle directory (``models/phase0/``) holds ``model.pt``, ``ema.pt``, ``normalizer.json`` and
-``config.json``; it is written as a whole, atomically.
+``config.json``, and, for a trained bundle, ``optimizer.pt`` (the Adam state of the raw weights at the end of
+training, which fine-tuning may carry on with); it is written as a whole, atomically. Bundles written before
+``optimizer.pt`` existed still load, with ``optimizer`` None.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from adaptdiffuser.io import atomic_dir, read_json, write_json
 from adaptdiffuser.models.unet import TemporalUnet
 
 BUNDLE_FILES = ("model.pt", "ema.pt", "normalizer.json", "config.json")
+OPTIMIZER_FILE = "optimizer.pt"  # optional: absent from untrained bundles and from those saved before it existed
 
 
 def build_diffusion(model: ModelParams, diffusion: DiffusionParams, obs_dim: int, act_dim: int) -> GaussianDiffusion:
@@ -42,12 +45,18 @@ def build_diffusion(model: ModelParams, diffusion: DiffusionParams, obs_dim: int
 
 @dataclass
 class ModelBundle:
-    """A trained model: the raw and EMA diffusion models, the normalizer and the training config."""
+    """A trained model: the raw and EMA diffusion models, the normalizer and the training config.
+
+    ``optimizer`` is the Adam state of the raw weights (``diffusion``) after the last training step, as
+    ``{"adam": optimizer.state_dict(), "step": Adam updates so far}``; None before training, or when loaded from
+    a bundle saved without it.
+    """
 
     diffusion: GaussianDiffusion
     ema: GaussianDiffusion
     normalizer: Normalizer
     config: dict[str, Any]
+    optimizer: dict[str, Any] | None = None
 
 
 def make_bundle(
@@ -77,10 +86,12 @@ def save_bundle(path: str | Path, bundle: ModelBundle) -> None:
         torch.save(bundle.ema.model.state_dict(), tmp / "ema.pt")
         write_json(tmp / "normalizer.json", bundle.normalizer.state_dict())
         write_json(tmp / "config.json", bundle.config)
+        if bundle.optimizer is not None:
+            torch.save(bundle.optimizer, tmp / OPTIMIZER_FILE)
 
 
 def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> ModelBundle:
-    """Load a bundle; raise ``FileNotFoundError`` naming the missing checkpoint file."""
+    """Load a bundle; raise ``FileNotFoundError`` naming the missing checkpoint file (``optimizer.pt`` is optional)."""
     path = Path(path)
     for name in BUNDLE_FILES:
         if not (path / name).exists():
@@ -95,6 +106,8 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> ModelBu
     bundle.config = config
     bundle.diffusion.model.load_state_dict(torch.load(path / "model.pt", map_location="cpu", weights_only=True))
     bundle.ema.model.load_state_dict(torch.load(path / "ema.pt", map_location="cpu", weights_only=True))
+    if (path / OPTIMIZER_FILE).exists():
+        bundle.optimizer = torch.load(path / OPTIMIZER_FILE, map_location="cpu", weights_only=True)
     bundle.diffusion.to(device)
     bundle.ema.to(device)
     return bundle

@@ -1,7 +1,13 @@
-"""Training loop: Adam, gradient accumulation, EMA, a progress bar, and resumable checkpoints."""
+"""Training loop: Adam, gradient accumulation, EMA, a progress bar, and resumable checkpoints.
+
+The learning rate is constant (no schedule). At the end of training the Adam state of the raw weights is kept in
+``bundle.optimizer`` (saved as the bundle's ``optimizer.pt``), so that a fine-tuning run can carry it on
+(``evolution.finetune.optimizer: carry``) instead of restarting Adam (``restart``, the default).
+"""
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 from collections.abc import Callable
@@ -19,6 +25,7 @@ from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.io import atomic_path
 
 LogFn = Callable[[int, float], None]
+OPTIMIZER_MODES = ("restart", "carry")
 
 
 def fingerprint(*parts: Any) -> str:
@@ -59,6 +66,36 @@ def _copy_weights(dst: torch.nn.Module, src: torch.nn.Module) -> None:
     dst.load_state_dict(src.state_dict())
 
 
+def adam_steps(state: dict[str, Any]) -> int:
+    """How many updates an Adam ``state_dict`` has made (0 for a fresh one)."""
+    steps = [int(s["step"]) for s in state["state"].values() if "step" in s]
+    return max(steps, default=0)
+
+
+def optimizer_record(optimizer: torch.optim.Optimizer) -> dict[str, Any]:
+    """What a bundle keeps of its optimizer: a copy of the Adam state and its update count."""
+    state = copy.deepcopy(optimizer.state_dict())
+    return {"adam": state, "step": adam_steps(state)}
+
+
+def carried_optimizer(bundle: ModelBundle, mode: str, source: str = "") -> dict[str, Any] | None:
+    """The optimizer state a fine-tuning run of ``bundle`` starts from (pass it to ``train``): None with
+    ``restart`` (a fresh Adam); the bundle's saved Adam state with ``carry``. A bundle saved before optimizer
+    states were kept has none: then Adam restarts, and a message says so."""
+    if mode not in OPTIMIZER_MODES:
+        raise ValueError(f"optimizer mode must be one of {OPTIMIZER_MODES}, not {mode!r}")
+    if mode == "restart":
+        return None
+    if bundle.optimizer is None:
+        tqdm.write(
+            f"finetune.optimizer is carry, but the model {source or 'fine-tuning starts from'} has no saved optimizer "
+            "state (it was written before optimizer.pt was kept): Adam restarts, as with restart. Retrain that model "
+            "to carry its optimizer state."
+        )
+        return None
+    return bundle.optimizer
+
+
 def train(
     bundle: ModelBundle,
     dataset: WindowDataset | MixedWindowDataset,
@@ -68,14 +105,23 @@ def train(
     run_id: str = "",
     on_log: LogFn | None = None,
     progress: bool = True,
+    optimizer_state: dict[str, Any] | None = None,
 ) -> list[tuple[int, float]]:
     """Train ``bundle`` in place for ``cfg.steps`` steps; resume from ``resume_path`` if it matches ``run_id``.
 
-    Returns the logged ``(step, loss)`` pairs of the whole run (including those before a resume).
+    The raw weights (``bundle.diffusion``) are trained and the EMA follows them. Adam starts fresh, or from
+    ``optimizer_state`` (a ``bundle.optimizer`` record, see ``carried_optimizer``: the moments of these same raw
+    weights, with its step count, so the bias correction continues too; this run's ``cfg.lr`` replaces the saved
+    learning rate). At the end ``bundle.optimizer`` holds the Adam state. Returns the logged ``(step, loss)`` pairs
+    of the whole run (including those before a resume).
     """
     model, ema = bundle.diffusion.to(device), bundle.ema.to(device)
     model.train()
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
+    if optimizer_state is not None:
+        optimizer.load_state_dict(copy.deepcopy(optimizer_state["adam"]))  # never update the caller's record
+        for group in optimizer.param_groups:
+            group["lr"] = cfg.lr
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator(device=device).manual_seed(cfg.seed)
     start, history = 0, []
@@ -128,4 +174,5 @@ def train(
                 torch.save(state, tmp)
     model.eval()
     ema.eval()
+    bundle.optimizer = optimizer_record(optimizer)
     return history

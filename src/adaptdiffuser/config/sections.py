@@ -114,6 +114,7 @@ class FinetuneParams:
     steps_fraction: PositiveFloat = 0.25
     expert_weight: Annotated[Float, UNIT_OPEN] = 0.5
     seed: Seed = 1
+    optimizer: Annotated[Str, one_of("restart", "carry")] = "restart"  # Adam: fresh, or phase k-1's carried on
 
 
 @dataclass(frozen=True, config=SECTION)

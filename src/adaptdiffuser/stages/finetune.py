@@ -27,7 +27,7 @@ from adaptdiffuser.stages.common import (
 )
 from adaptdiffuser.stages.pretrain import expert_training_data
 from adaptdiffuser.tracking import stage_run
-from adaptdiffuser.training import fingerprint, train
+from adaptdiffuser.training import carried_optimizer, fingerprint, train
 
 
 def finetune_config(params: Params, task: TaskParams, phase: int, seed: int) -> PretrainParams:
@@ -108,6 +108,7 @@ def finetune_seed(
             run_id=fingerprint(logged, bundle.config),
             progress=progress,
             on_log=lambda step, loss: mlflow.log_metric("train_loss", loss, step=step),
+            optimizer_state=carried_optimizer(bundle, cfg.finetune.optimizer, str(source)),
         )
         bundle.config = {
             **bundle.config,
