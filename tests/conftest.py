@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params
+from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.data.windows import WindowDataset, joint_array
 from adaptdiffuser.families.maze2d.expert import collect_expert_stream
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.families.registry import get_family
@@ -48,6 +50,18 @@ def expert_traj() -> Trajectories:
     traj = collect_expert_stream(env, steps=3000, seed=0, progress=False)
     traj.metadata = make_metadata("maze2d-umaze", env.obs_dim, env.act_dim, "expert", {"steps": 3000})
     return traj
+
+
+@pytest.fixture(scope="session")
+def normalizer(expert_traj: Trajectories) -> MinMaxNormalizer:
+    """The min/max normalizer of :func:`expert_traj`."""
+    return MinMaxNormalizer.fit(joint_array(expert_traj))
+
+
+@pytest.fixture(scope="session")
+def dataset(expert_traj: Trajectories, normalizer: MinMaxNormalizer) -> WindowDataset:
+    """Training windows of 16 steps over :func:`expert_traj`."""
+    return WindowDataset(expert_traj, 16, normalizer)
 
 
 @pytest.fixture

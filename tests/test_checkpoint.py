@@ -13,7 +13,7 @@ from adaptdiffuser.checkpoint import BUNDLE_FILES, ModelBundle, load_bundle, mak
 from adaptdiffuser.config import DiffusionParams, ModelParams, PretrainParams
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import Trajectories
-from adaptdiffuser.data.windows import WindowDataset, joint_array
+from adaptdiffuser.data.windows import WindowDataset
 from adaptdiffuser.diffusion.noise import RowNoise
 from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.training import fingerprint, train
@@ -26,16 +26,6 @@ CFG = PretrainParams(
 
 class Interrupted(Exception):
     """Stands in for the stage being killed part-way."""
-
-
-@pytest.fixture(scope="module")
-def normalizer(expert_traj: Trajectories) -> MinMaxNormalizer:
-    return MinMaxNormalizer.fit(joint_array(expert_traj))
-
-
-@pytest.fixture(scope="module")
-def dataset(expert_traj: Trajectories, normalizer: MinMaxNormalizer) -> WindowDataset:
-    return WindowDataset(expert_traj, 16, normalizer)
 
 
 @pytest.fixture

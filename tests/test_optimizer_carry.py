@@ -13,8 +13,7 @@ from adaptdiffuser.checkpoint import BUNDLE_FILES, OPTIMIZER_FILE, ModelBundle, 
 from adaptdiffuser.config import DiffusionParams, ModelParams, PretrainParams
 from adaptdiffuser.config.sections import FinetuneParams
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
-from adaptdiffuser.data.schema import Trajectories
-from adaptdiffuser.data.windows import WindowDataset, joint_array
+from adaptdiffuser.data.windows import WindowDataset
 from adaptdiffuser.training import adam_steps, carried_optimizer, train
 
 CPU = torch.device("cpu")
@@ -26,16 +25,6 @@ BETAS = (0.9, 0.999)  # torch.optim.Adam's defaults, which training uses
 
 class Interrupted(Exception):
     """Stands in for the stage being killed part-way."""
-
-
-@pytest.fixture(scope="module")
-def normalizer(expert_traj: Trajectories) -> MinMaxNormalizer:
-    return MinMaxNormalizer.fit(joint_array(expert_traj))
-
-
-@pytest.fixture(scope="module")
-def dataset(expert_traj: Trajectories, normalizer: MinMaxNormalizer) -> WindowDataset:
-    return WindowDataset(expert_traj, 16, normalizer)
 
 
 @pytest.fixture(scope="module")
