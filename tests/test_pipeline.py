@@ -94,8 +94,8 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
         assert isinstance(entry["score_mean"], float) and isinstance(entry["n_episodes"], int)
     for k in (1, 2):
         disc = maze[f"phase_{k}"]["discriminator"]
-        assert set(disc) == {"generated", "kept", "kept_fraction", "tracking_error_mean"}
-        assert disc["generated"] == 16 and 1 <= disc["kept"] <= 16
+        assert set(disc) == {"generated", "tracked", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept"}
+        assert disc["generated"] == 16 and 1 <= disc["kept"] <= disc["tracked"] <= 16 and disc["return_mean_kept"] >= 0
         assert disc["kept_fraction"] == disc["kept"] / 16 and disc["tracking_error_mean"] > 0
         entry, control = maze[f"phase_{k}"], maze[f"phase_{k}"]["control"]
         assert control["n_episodes"] == 3 and "gain_mean" not in control

@@ -110,6 +110,8 @@ def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> No
     phase1 = summary["phase_1"]
     assert set(phase1["per_seed"]) == {"0", "3"} and "seeds" not in phase1
     assert phase1["control"]["n_seeds"] == 2
+    disc = phase1["discriminator"]  # each seed's counts, averaged
+    assert disc["generated"] == params.phase(1).generate.tasks and 0 < disc["kept"] <= disc["tracked"]
     coin = json.loads((root / f"metrics/tasks/{TASK}/phase1-coin.json").read_text())
     rates = [coin["seeds"][s]["gold_coin"]["both_rate"] for s in ("0", "3")]
     assert phase1["gold_coin"]["both_rate"] == pytest.approx(np.mean(rates))

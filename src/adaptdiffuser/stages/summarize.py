@@ -14,7 +14,7 @@ from adaptdiffuser.stages.common import (
     reference_path,
 )
 
-SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean")
+SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept")
 GAIN_KEYS = ("gain_mean", "gain_stderr")
 PER_SEED_KEYS = ("score_mean", "score_stderr", "gain_mean", "gain_stderr")
 
@@ -65,6 +65,7 @@ def run_summarize(params: Params, root: Path) -> dict:
             if k > 0:
                 report = read_json(root / discriminator_metrics_path(task, k), f"discriminator report of phase {k}")
                 phase["discriminator"] = {key: report[key] for key in SUMMARY_DISCRIMINATOR_KEYS}
+                phase["discriminator"]["tracked"] = report["generated"] - report["rejected_tracking"]
                 control = read_json(
                     root / phase_metrics_path(task, k, control=True), f"metrics of {task} phase {k}'s control"
                 )
