@@ -107,6 +107,20 @@ def report_plot_path(task: str) -> Path:
     return Path(f"plots/report/{task}/score_by_phase.png")
 
 
+def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str, phase: int, root: Path) -> dict:
+    """A stage's metrics of every training seed as one file (``root / path``; see
+    :func:`adaptdiffuser.seed_metrics.over_seeds`), logged as an aggregate MLflow run when there are several seeds;
+    returns the aggregate."""
+    from adaptdiffuser.io import write_json
+    from adaptdiffuser.seed_metrics import over_seeds
+    from adaptdiffuser.tracking import log_over_seeds
+
+    metrics = over_seeds(per_seed)
+    write_json(root / path, metrics)
+    log_over_seeds(task, stage, phase, metrics, root)
+    return metrics
+
+
 def resolve_device(name: str) -> torch.device:
     """``auto`` picks CUDA when available; anything else is passed to torch (``cpu``, ``cuda``, ``cuda:1``)."""
     if name == "auto":

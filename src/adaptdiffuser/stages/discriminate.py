@@ -12,17 +12,16 @@ from adaptdiffuser.data.schema import read_trajectories, write_trajectories
 from adaptdiffuser.evolution.discriminator import NothingSelectedError
 from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
-from adaptdiffuser.io import write_json
 from adaptdiffuser.plots import save_discriminator_histograms
-from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.stages.common import (
     discriminator_metrics_path,
     discriminator_plot_path,
     file_digest,
     generated_path,
+    save_over_seeds,
     selected_path,
 )
-from adaptdiffuser.tracking import log_over_seeds, stage_run
+from adaptdiffuser.tracking import stage_run
 
 
 def run_discriminate(params: Params, task_name: str, root: Path, phase: int, progress: bool = True) -> dict:
@@ -30,10 +29,9 @@ def run_discriminate(params: Params, task_name: str, root: Path, phase: int, pro
     with their mean over seeds, to ``metrics/tasks/<task>/phase<k>-discriminator.json``."""
     task = params.resolve(task_name)
     reports = {seed: discriminate_seed(params, task.name, root, phase, seed, progress) for seed in params.seeds}
-    report = over_seeds(reports)
-    write_json(root / discriminator_metrics_path(task.name, phase), report)
-    log_over_seeds(task.name, "discriminate", phase, report, root)
-    return report
+    return save_over_seeds(
+        reports, discriminator_metrics_path(task.name, phase), task.name, "discriminate", phase, root
+    )
 
 
 def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, seed: int, progress: bool = True) -> dict:

@@ -18,9 +18,8 @@ from adaptdiffuser.errors import StageError
 from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, summarize
 from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
-from adaptdiffuser.io import atomic_path, read_json, write_json
+from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.stages.common import (
     model_dir,
     phase_metrics_path,
@@ -28,8 +27,9 @@ from adaptdiffuser.stages.common import (
     plots_dir,
     reference_path,
     results_dir,
+    save_over_seeds,
 )
-from adaptdiffuser.tracking import log_over_seeds, stage_run
+from adaptdiffuser.tracking import stage_run
 
 
 def run_evaluate(
@@ -50,10 +50,8 @@ def run_evaluate(
         seed: evaluate_seed(params, task.name, root, phase, device, seed, ref, progress, control)
         for seed in params.seeds
     }
-    metrics = over_seeds(per_seed)
-    write_json(root / phase_metrics_path(task.name, phase, control), metrics)
-    log_over_seeds(task.name, "evaluate-control" if control else "evaluate", phase, metrics, root)
-    return metrics
+    stage = "evaluate-control" if control else "evaluate"
+    return save_over_seeds(per_seed, phase_metrics_path(task.name, phase, control), task.name, stage, phase, root)
 
 
 def evaluate_seed(

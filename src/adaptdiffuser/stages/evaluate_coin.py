@@ -19,9 +19,14 @@ from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.io import read_json, write_json
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.plots import save_coin_picture
-from adaptdiffuser.seed_metrics import over_seeds
-from adaptdiffuser.stages.common import coin_metrics_path, coin_plots_dir, model_dir, reference_path
-from adaptdiffuser.tracking import log_over_seeds, stage_run
+from adaptdiffuser.stages.common import (
+    coin_metrics_path,
+    coin_plots_dir,
+    model_dir,
+    reference_path,
+    save_over_seeds,
+)
+from adaptdiffuser.tracking import stage_run
 
 
 def run_evaluate_coin(
@@ -40,9 +45,7 @@ def run_evaluate_coin(
         seed: {"gold_coin": evaluate_coin_seed(params, task.name, root, phase, device, seed, ref, progress)}
         for seed in params.seeds
     }
-    metrics = over_seeds(per_seed)
-    write_json(root / coin_metrics_path(task.name, phase), metrics)
-    log_over_seeds(task.name, "evaluate-coin", phase, metrics, root)
+    metrics = save_over_seeds(per_seed, coin_metrics_path(task.name, phase), task.name, "evaluate-coin", phase, root)
     return metrics["gold_coin"]
 
 
