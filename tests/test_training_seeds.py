@@ -14,7 +14,8 @@ import yaml
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
-from adaptdiffuser.seed_metrics import over_seeds, standard_error_over
+from adaptdiffuser.evaluation import standard_error
+from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.common import model_dir, phase_metrics_path, results_dir, selected_path
@@ -101,7 +102,7 @@ def test_metrics_are_aggregated_over_seeds(two_seeds: tuple[Path, Params]) -> No
     control = json.loads((root / phase_metrics_path(TASK, 1, control=True)).read_text())
     gains = [control["seeds"][s]["gain_mean"] for s in ("0", "3")]
     assert control["gain_mean"] == pytest.approx(np.mean(gains))
-    assert control["gain_stderr"] == pytest.approx(standard_error_over(gains))
+    assert control["gain_stderr"] == pytest.approx(standard_error(gains))
 
 
 def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> None:
@@ -115,7 +116,7 @@ def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> No
     coin = json.loads((root / f"metrics/tasks/{TASK}/phase1-coin.json").read_text())
     rates = [coin["seeds"][s]["gold_coin"]["both_rate"] for s in ("0", "3")]
     assert phase1["gold_coin"]["both_rate"] == pytest.approx(np.mean(rates))
-    assert phase1["gold_coin"]["both_rate_stderr"] == pytest.approx(standard_error_over(rates))
+    assert phase1["gold_coin"]["both_rate_stderr"] == pytest.approx(standard_error(rates))
     assert phase1["gain_mean"] == pytest.approx(np.mean([e["gain_mean"] for e in phase1["per_seed"].values()]))
     points = seed_points(summary)
     assert points["score_mean"][0] == [0, 0, 1, 1] and points["control_score_mean"][0] == [1, 1]

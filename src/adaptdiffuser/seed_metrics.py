@@ -13,16 +13,11 @@ from typing import Any
 
 import numpy as np
 
+from adaptdiffuser.evaluation import standard_error
+
 
 def _is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
-
-
-def standard_error_over(values: list[float]) -> float:
-    """Standard error of the mean of ``values`` (sample standard deviation / sqrt(n)); 0 for a single value."""
-    if len(values) < 2:
-        return 0.0
-    return float(np.std(values, ddof=1) / np.sqrt(len(values)))
 
 
 def _mean_of(values: list[Any]) -> Any:
@@ -39,20 +34,17 @@ def _mean_of(values: list[Any]) -> Any:
     return first if all(v == first for v in values) else None
 
 
-def _spread_over_seeds(merged: dict[str, Any], values: list[Mapping[str, Any]]) -> bool:
+def _spread_over_seeds(merged: dict[str, Any], values: list[Mapping[str, Any]]) -> None:
     """Replace, in place and at every depth, each ``<name>_stderr`` by the standard error over seeds of its
-    ``<name>_mean`` (or ``<name>``); whether there was any."""
-    found = False
+    ``<name>_mean`` (or ``<name>``)."""
     for key in list(merged):
         if isinstance(merged[key], dict):
-            found |= _spread_over_seeds(merged[key], [v[key] for v in values])
+            _spread_over_seeds(merged[key], [v[key] for v in values])
         elif key.endswith("_stderr"):
             name = key.removesuffix("_stderr")
             mean = next((m for m in (f"{name}_mean", name) if m in merged and _is_number(merged[m])), None)
             if mean is not None:
-                merged[key] = standard_error_over([float(v[mean]) for v in values])
-                found = True
-    return found
+                merged[key] = standard_error([float(v[mean]) for v in values])
 
 
 def _has_stderr(metrics: Mapping[str, Any]) -> bool:

@@ -82,7 +82,7 @@ def stage_run(
 
 
 def log_over_seeds(task: str, stage: str, phase: int, metrics: dict[str, Any], root: Path = Path(".")) -> None:
-    """With several training seeds, one more run (``<stage>-phase<k>-seeds``, tag ``seed=all``) holding the
+    """With several training seeds, one more run (``<stage>-phase<k>-seedall``, tag ``seed=all``) holding the
     aggregate of a stage's per-seed metrics (see :func:`adaptdiffuser.seed_metrics.over_seeds`)."""
     if metrics.get("n_seeds", 1) < 2:
         return

@@ -9,6 +9,7 @@ as executed with their real length).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import partial
 from typing import Any
 
@@ -155,11 +156,8 @@ def rollout_trajectory(
 ) -> TrackedTrajectory:
     """A generated rollout as the discriminator sees it: its states and actions, the protocol's reward of each state
     for its own ``goal``, and its per-step tracking errors (zeros when the file has none)."""
-    env.set_goal_state(goal)
-    rewards = np.array([env.reward(x) for x in states], dtype=np.float64)
-    hits = np.flatnonzero(rewards > 0)
-    step_errors = np.zeros(len(states) - 1) if errors is None else np.asarray(errors, dtype=np.float64)[1:]
-    return TrackedTrajectory(states, actions, step_errors, rewards, int(hits[0]) if len(hits) else -1)
+    scored = planned_trajectory(env, states, actions, goal)  # the states' rewards, zero errors
+    return scored if errors is None else replace(scored, errors=np.asarray(errors, dtype=np.float64)[1:])
 
 
 def judge_rollouts(
