@@ -50,6 +50,33 @@ def write_raw(path: Path, table: pa.Table, meta: dict | bytes | None) -> None:
     pq.write_table(table, path)
 
 
+def corrupt(source: Path, target: Path, column: str, row: int, value: float | int, element: int = 0) -> Path:
+    """Copy the valid file ``source`` to ``target`` with one value of ``column`` (row ``row``, list element
+    ``element``) replaced by ``value``, through plain pyarrow, keeping the file metadata."""
+    table = pq.read_table(source)
+    col = table.column(column).combine_chunks()
+    if pa.types.is_fixed_size_list(col.type):
+        values = col.flatten().to_numpy().copy()
+        values[row * col.type.list_size + element] = value
+        new = pa.FixedSizeListArray.from_arrays(pa.array(values, type=col.type.value_type), col.type.list_size)
+    else:
+        values = col.to_numpy().copy()
+        values[row] = value
+        new = pa.array(values, type=col.type)
+    write_raw(
+        target, table.set_column(table.column_names.index(column), column, new), table.schema.metadata[METADATA_KEY]
+    )
+    return target
+
+
+def assert_one_line_naming(err: BaseException, *parts: object) -> None:
+    """The error message is one line and names every one of ``parts``."""
+    message = str(err)
+    assert "\n" not in message, message
+    for part in parts:
+        assert str(part) in message, (part, message)
+
+
 @pytest.fixture
 def valid_file(tmp_path: Path) -> Path:
     path = tmp_path / "traj.parquet"
@@ -111,8 +138,9 @@ def test_episodes_slices() -> None:
 def test_file_without_project_metadata_is_rejected(valid_file: Path, tmp_path: Path) -> None:
     path = tmp_path / "plain.parquet"
     write_raw(path, pq.read_table(valid_file), None)
-    with pytest.raises(SchemaError, match="adaptdiffuser"):
-        read_trajectories(path)
+    with pytest.raises(SchemaError, match="adaptdiffuser") as err:
+        read_trajectories(path, env="maze2d-umaze")
+    assert_one_line_naming(err.value, path, "metadata")
 
 
 def test_metadata_that_is_not_json_is_rejected(valid_file: Path, tmp_path: Path) -> None:
@@ -278,3 +306,86 @@ def test_state_column_must_match_the_declared_state_dim(tmp_path: Path) -> None:
     with pytest.raises(SchemaError, match="state_dim' is 0"):
         write_trajectories(tmp_path / "s.parquet", traj)
     assert not (tmp_path / "s.parquet").exists()
+
+
+@pytest.fixture
+def state_file(tmp_path: Path) -> Path:
+    """A valid file with the simulator-state column (episodes of 5, 3 and 7 steps)."""
+    traj = make_traj([5, 3, 7])
+    traj.sim_state = np.random.default_rng(4).normal(size=(15, 6))
+    traj.metadata = make_metadata("hopper-medium", OBS_DIM, ACT_DIM, "expert", {}, state_dim=6)
+    path = tmp_path / "state.parquet"
+    write_trajectories(path, traj)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("column", "row", "element", "value", "episode", "step"),
+    [
+        ("observation", 6, 2, np.nan, 1, 1),
+        ("action", 14, 1, np.inf, 2, 6),
+        ("reward", 0, 0, -np.inf, 0, 0),
+        ("sim_state", 9, 5, np.nan, 2, 1),
+    ],
+    ids=["observation-nan", "action-inf", "reward-minus-inf", "sim_state-nan"],
+)
+def test_non_finite_value_is_refused_naming_file_column_and_row(
+    state_file: Path, tmp_path: Path, column: str, row: int, element: int, value: float, episode: int, step: int
+) -> None:
+    path = corrupt(state_file, tmp_path / "nonfinite.parquet", column, row, value, element)
+    with pytest.raises(SchemaError, match="must be finite") as err:
+        read_trajectories(path)
+    where = f"row {row} (episode {episode}, step {step}" + (f"), element {element}" if column != "reward" else ")")
+    assert_one_line_naming(err.value, path, f"column {column!r}", where, value)
+
+
+def test_only_the_first_non_finite_row_is_named(valid_file: Path, tmp_path: Path) -> None:
+    path = corrupt(valid_file, tmp_path / "first.parquet", "observation", 11, np.nan)
+    path = corrupt(path, tmp_path / "both.parquet", "observation", 4, -np.inf, element=3)
+    with pytest.raises(SchemaError, match=r"'observation' holds -inf at row 4 \(episode 0, step 4\), element 3"):
+        read_trajectories(path)
+
+
+def test_nan_in_an_extra_column_is_kept(tmp_path: Path) -> None:
+    traj = make_traj([2, 2])  # synthetic files mark tasks without a gold coin by NaN coins
+    traj.extra = {"task_coin": np.array([[np.nan, np.nan]] * 2 + [[1.0, 2.0]] * 2, dtype=np.float32)}
+    write_trajectories(tmp_path / "coins.parquet", traj)
+    back = read_trajectories(tmp_path / "coins.parquet")
+    assert np.isnan(back.extra["task_coin"][:2]).all() and (back.extra["task_coin"][2:] == [1.0, 2.0]).all()
+
+
+@pytest.mark.parametrize(("row", "value"), [(7, 1), (12, 1), (6, -3)], ids=["repeated", "decreasing", "negative"])
+def test_steps_not_increasing_within_an_episode_are_refused(
+    valid_file: Path, tmp_path: Path, row: int, value: int
+) -> None:
+    path = corrupt(valid_file, tmp_path / "steps.parquet", "step", row, value)
+    episode = read_trajectories(valid_file).episode_id[row]
+    with pytest.raises(SchemaError, match="does not increase") as err:
+        read_trajectories(path)
+    assert_one_line_naming(err.value, path, "column 'step'", f"episode {episode} at row {row}", f"step {value} after")
+
+
+def test_steps_may_restart_at_a_new_episode_and_skip(valid_file: Path, tmp_path: Path) -> None:
+    path = corrupt(valid_file, tmp_path / "gap.parquet", "step", 7, 40)  # last step of episode 1; 0 follows
+    np.testing.assert_array_equal(read_trajectories(path).step[5:9], [0, 1, 40, 0])
+
+
+def test_file_of_another_task_is_refused_naming_both(valid_file: Path) -> None:
+    assert read_trajectories(valid_file, env="maze2d-umaze").metadata["env"] == "maze2d-umaze"
+    with pytest.raises(SchemaError, match="another task") as err:
+        read_trajectories(valid_file, env="hopper-medium")
+    assert_one_line_naming(err.value, valid_file, "'env'", "'maze2d-umaze'", "'hopper-medium'")
+
+
+def test_null_inside_an_observation_names_the_row(valid_file: Path, tmp_path: Path) -> None:
+    table = pq.read_table(valid_file)
+    values = pa.array(
+        [None if i == 9 * OBS_DIM + 1 else 0.5 for i in range(table.num_rows * OBS_DIM)], type=pa.float32()
+    )
+    column = pa.FixedSizeListArray.from_arrays(values, OBS_DIM)
+    path = tmp_path / "null.parquet"
+    meta = table.schema.metadata[METADATA_KEY]
+    write_raw(path, table.set_column(table.column_names.index("observation"), "observation", column), meta)
+    with pytest.raises(SchemaError, match="nulls") as err:
+        read_trajectories(path)
+    assert_one_line_naming(err.value, path, "column 'observation'", "row 9")

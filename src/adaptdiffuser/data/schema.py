@@ -7,6 +7,11 @@ any dataset state can be restored exactly. Extra columns (for example the task a
 trajectory was generated for) are allowed and kept. File metadata, under the key ``adaptdiffuser``, is a JSON
 object naming the environment, the dimensions, the source (``expert`` or ``synthetic``), the generator's params
 and the schema version.
+
+Reading refuses, with a one-line :class:`SchemaError` naming the file, the column and the first bad row: nulls,
+NaN or infinite values in the float columns of the schema (extra columns are the writer's own: a family may use
+NaN there for "none"), steps that do not strictly increase within an episode, and, when the caller names the
+environment it expects, a file whose metadata names another.
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ READABLE_VERSIONS = (1, 2)
 METADATA_KEY = b"adaptdiffuser"
 SOURCES = ("expert", "synthetic")
 REQUIRED_METADATA = ("env", "obs_dim", "act_dim", "source", "generator", "schema_version")
+#: the schema's float columns, which must hold finite values only
+FLOAT_COLUMNS = ("observation", "action", "reward", "sim_state")
 
 
 class SchemaError(ValueError):
@@ -141,8 +148,9 @@ def write_trajectories(path: str | Path, traj: Trajectories) -> None:
         pq.write_table(table, tmp)
 
 
-def read_trajectories(path: str | Path) -> Trajectories:
-    """Read and validate a trajectory file; raise :class:`SchemaError` naming what does not match."""
+def read_trajectories(path: str | Path, env: str | None = None) -> Trajectories:
+    """Read and validate a trajectory file; raise :class:`SchemaError` naming what does not match. With ``env``
+    (a task name, such as ``maze2d-umaze``), also refuse a file whose metadata names another environment."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"trajectory file not found: {path}")
@@ -158,6 +166,8 @@ def read_trajectories(path: str | Path) -> Trajectories:
     except json.JSONDecodeError as err:
         raise SchemaError(f"{path}: file metadata 'adaptdiffuser' is not valid JSON") from err
     _check_metadata(meta, path)
+    if env is not None and meta["env"] != env:
+        raise SchemaError(f"{path}: metadata field 'env' is {meta['env']!r}, expected {env!r} (a file of another task)")
     state_dim = meta.get("state_dim", 0)
     expected = arrow_schema(meta["obs_dim"], meta["act_dim"], state_dim)
     for fld in expected:
@@ -166,9 +176,8 @@ def read_trajectories(path: str | Path) -> Trajectories:
         actual = table.schema.field(fld.name).type
         if actual != fld.type:
             raise SchemaError(f"{path}: column {fld.name!r} has type {actual}, expected {fld.type}")
-    for name in ("observation", "action"):
-        if table.column(name).null_count:
-            raise SchemaError(f"{path}: column {name!r} contains nulls")
+    for name in expected.names:
+        _check_no_nulls(table, name, path)
     n = table.num_rows
     traj = Trajectories(
         episode_id=table.column("episode_id").to_numpy(),
@@ -184,7 +193,54 @@ def read_trajectories(path: str | Path) -> Trajectories:
     )
     if n and np.any(np.diff(traj.episode_id) < 0):
         raise SchemaError(f"{path}: column 'episode_id' must be grouped in ascending order")
+    _check_steps(traj, path)
+    for name in FLOAT_COLUMNS:
+        if getattr(traj, name) is not None:
+            _check_finite(traj, name, getattr(traj, name), path)
     return traj
+
+
+def _where(traj: Trajectories, row: int) -> str:
+    """``row R (episode E, step S)`` for error messages."""
+    return f"row {row} (episode {traj.episode_id[row]}, step {traj.step[row]})"
+
+
+def _check_no_nulls(table: pa.Table, name: str, path: Path) -> None:
+    """No null in column ``name``, nor inside its lists; otherwise name the first row holding one."""
+    offset = 0
+    for chunk in table.column(name).chunks:
+        values, size = chunk, 1
+        if not chunk.null_count and pa.types.is_fixed_size_list(chunk.type):
+            values, size = chunk.flatten(), chunk.type.list_size
+        if values.null_count:
+            row = offset + int(np.flatnonzero(values.is_null().to_numpy(zero_copy_only=False))[0]) // size
+            raise SchemaError(f"{path}: column {name!r} contains nulls, first at row {row}")
+        offset += len(chunk)
+
+
+def _check_steps(traj: Trajectories, path: Path) -> None:
+    """Steps strictly increase within each episode (rows grouped by episode)."""
+    same_episode = traj.episode_id[1:] == traj.episode_id[:-1]
+    bad = np.flatnonzero(same_episode & (traj.step[1:] <= traj.step[:-1]))
+    if len(bad):
+        row = int(bad[0]) + 1
+        raise SchemaError(
+            f"{path}: column 'step' does not increase within episode {traj.episode_id[row]} at row {row} "
+            f"(step {traj.step[row]} after {traj.step[row - 1]})"
+        )
+
+
+def _check_finite(traj: Trajectories, name: str, values: np.ndarray, path: Path) -> None:
+    """Every value of the float column ``name`` is finite; otherwise name the first bad row and its value."""
+    finite = np.isfinite(values)
+    if finite.all():
+        return
+    rows = finite.reshape(len(values), -1).all(axis=1)
+    row = int(np.flatnonzero(~rows)[0])
+    flat = values[row].reshape(-1)
+    element = int(np.flatnonzero(~np.isfinite(flat))[0])
+    where = f"{_where(traj, row)}, element {element}" if values.ndim > 1 else _where(traj, row)
+    raise SchemaError(f"{path}: column {name!r} holds {flat[element]} at {where}; values must be finite")
 
 
 def _fixed_list(table: pa.Table, name: str, n: int, dim: int) -> np.ndarray:

@@ -42,7 +42,7 @@ def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, se
     task = params.resolve(task_name)
     cfg = params.phase(phase).discriminate
     source = root / generated_path(task.name, phase, seed)
-    generated = read_trajectories(source)
+    generated = read_trajectories(source, env=task.name)
     logged = {
         "discriminate": asdict(cfg),
         "seed": seed,

@@ -79,7 +79,7 @@ def finetune_seed(
     parts = [WindowDataset(expert, task.diffusion.horizon, bundle.normalizer)]
     for j in [] if control else params.lineage(phase):
         path = root / selected_path(task.name, j, seed)
-        parts.append(WindowDataset(read_trajectories(path), task.diffusion.horizon, bundle.normalizer))
+        parts.append(WindowDataset(read_trajectories(path, env=task.name), task.diffusion.horizon, bundle.normalizer))
         synthetic_info[f"phase{j}"] = {"path": str(selected_path(task.name, j, seed)), "sha256": file_digest(path)}
     w = 1.0 if control else cfg.finetune.expert_weight
     synthetic_share = (1.0 - w) / max(1, len(parts) - 1)

@@ -31,7 +31,7 @@ def expert_training_data(task: TaskParams, root: Path, seed: int) -> tuple[Traje
     """The dataset episodes the models of training seed ``seed`` train on (``pretrain.expert_fraction`` of them,
     chosen with that seed's pretraining seed, so every phase sees the same subset) and how to name them in logs."""
     data_path = root / dataset_path(task.name)
-    traj = read_trajectories(data_path)
+    traj = read_trajectories(data_path, env=task.name)
     fraction = task.pretrain.expert_fraction
     subset = subset_episodes(traj, fraction, np.random.default_rng(pretrain_config(task, seed).seed))
     return subset, {"path": str(dataset_path(task.name)), "sha256": file_digest(data_path), "fraction": fraction}

@@ -87,7 +87,7 @@ def generate_segments(
     from adaptdiffuser.value_training import load_value
 
     rng = np.random.default_rng(seed)
-    dataset = read_trajectories(files.dataset)
+    dataset = read_trajectories(files.dataset, env=task.name)
     starts = sample_start_states(sim, dataset, cfg.tasks, task.settings.evolution.reset_fraction, rng)
     observations = np.stack([sim.set_state(state) for state in starts])
     value_net, _ = load_value(files.value, planner.device)

@@ -66,7 +66,7 @@ class LocomotionFamily(Family):
             ref[f"{who}_return_mean"] = float(returns.mean())
             ref[f"{who}_score_mean"] = float(np.mean(scores))
             ref[f"{who}_score_stderr"] = standard_error(scores)
-        data = episode_returns(read_trajectories(files.dataset))
+        data = episode_returns(read_trajectories(files.dataset, env=task.name))
         data_scores = normalized_score(data, env_id)
         ref["dataset"] = {
             "score_mean": float(np.mean(data_scores)),
@@ -97,7 +97,7 @@ class LocomotionFamily(Family):
         """Execute each segment's actions from its start state; reject falls and drift; select by real reward."""
         from adaptdiffuser.families.locomotion.evolution import judge_segments
 
-        dataset = read_trajectories(files.dataset)
+        dataset = read_trajectories(files.dataset, env=task.name)
         return judge_segments(self.make_simulator(task), task, generated, dataset, cfg, phase, progress)
 
     def selected_data(self, task, generated, judgement, generator):
