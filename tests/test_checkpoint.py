@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+import adaptdiffuser.training as training
 from adaptdiffuser.checkpoint import BUNDLE_FILES, ModelBundle, load_bundle, make_bundle, save_bundle
 from adaptdiffuser.config import DiffusionParams, ModelParams, PretrainParams
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
@@ -119,7 +120,39 @@ def test_train_reduces_loss_and_keeps_ema(dataset: WindowDataset, new_bundle) ->
     assert all(np.isfinite(loss) for _, loss in history)
     assert history[-1][1] < history[0][1]
     ema, raw = bundle.ema.model.state_dict(), bundle.diffusion.model.state_dict()
-    assert any(not torch.equal(ema[k], raw[k]) for k in raw)  # EMA lags the raw weights after ema_start
+    assert all(not torch.equal(ema[k], raw[k]) for k in raw)  # every weight of the EMA lags the raw one
+
+
+def test_ema_follows_the_raw_weights_with_the_declared_decay(
+    dataset: WindowDataset, new_bundle, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every ``ema_every`` steps the EMA becomes a copy of the raw weights (before ``ema_start``) or moves
+    ``1 - ema_decay`` of the way to them: replaying that recursion on the raw weights seen at those steps gives the
+    trained EMA."""
+    seen: list[tuple[str, list[torch.Tensor]]] = []
+
+    def spy(kind: str, original):
+        def record(dst: torch.nn.Module, src: torch.nn.Module, *args: float) -> None:
+            seen.append((kind, [p.detach().clone() for p in src.parameters()]))
+            original(dst, src, *args)
+
+        return record
+
+    monkeypatch.setattr(training, "_copy_weights", spy("copy", training._copy_weights))
+    monkeypatch.setattr(training, "_update_ema", spy("update", training._update_ema))
+    bundle = new_bundle(0)
+    cfg = dataclasses.replace(CFG, steps=60, ema_every=5, ema_start=20, ema_decay=0.8)
+    replay = [p.detach().clone() for p in bundle.ema.model.parameters()]
+    train(bundle, dataset, cfg, CPU, progress=False)
+    # steps 5, 10, 15 come before ema_start (copies); 20, 25, ..., 60 are EMA updates
+    assert [kind for kind, _ in seen] == ["copy"] * 3 + ["update"] * 9
+    for kind, raw in seen:
+        replay = raw if kind == "copy" else [0.8 * e + 0.2 * r for e, r in zip(replay, raw, strict=True)]
+    for e, r in zip(bundle.ema.model.parameters(), replay, strict=True):
+        torch.testing.assert_close(e.detach(), r, rtol=1e-5, atol=1e-6)
+    # step 60 is an EMA step: the last raw weights the EMA saw are the trained ones
+    for r, p in zip(seen[-1][1], bundle.diffusion.model.parameters(), strict=True):
+        assert torch.equal(r, p.detach())
 
 
 def test_ema_is_a_copy_before_ema_start(dataset: WindowDataset, new_bundle) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -38,9 +40,35 @@ def test_horizon_not_divisible_raises(mults: tuple[int, ...], horizon: int) -> N
         net(torch.randn(1, horizon, 6), torch.zeros(1, dtype=torch.long))
 
 
-def test_downsample_factor() -> None:
-    assert TemporalUnet(6, dim=8, dim_mults=(1, 4, 8)).downsample_factor == 4
-    assert TemporalUnet(6, dim=8, dim_mults=(1,)).downsample_factor == 1
+@pytest.mark.parametrize(("mults", "horizon"), [((1, 4, 8), 24), ((1, 2, 4, 8), 40), ((1, 2), 6), ((1,), 7)])
+def test_each_level_halves_the_horizon_and_the_output_restores_it(mults: tuple[int, ...], horizon: int) -> None:
+    """Level ``i`` of the contracting path works on ``horizon / 2^i`` steps, the middle on ``horizon /
+    downsample_factor``, and the expanding path brings it back; any multiple of the factor is accepted."""
+    net = TemporalUnet(3, dim=8, dim_mults=mults)
+    assert net.downsample_factor == 2 ** (len(mults) - 1)
+    lengths: dict[str, int] = {}
+
+    def record(name: str):
+        def hook(module: torch.nn.Module, args: tuple, out: torch.Tensor) -> None:
+            lengths[name] = out.shape[-1]
+
+        return hook
+
+    for i, (_, block2, _) in enumerate(net.down):
+        block2.register_forward_hook(record(f"down{i}"))
+    net.mid2.register_forward_hook(record("mid"))
+    for i, (_, block2, _) in enumerate(net.up):
+        block2.register_forward_hook(record(f"up{i}"))
+    with torch.no_grad():
+        out = net(torch.randn(2, horizon, 3), torch.tensor([0, 3]))
+    assert out.shape == (2, horizon, 3)
+    levels = len(mults)
+    assert [lengths[f"down{i}"] for i in range(levels)] == [horizon // 2**i for i in range(levels)]
+    assert lengths["mid"] == horizon // net.downsample_factor
+    # the expanding path joins each skip at its own length, then doubles it
+    assert [lengths[f"up{i}"] for i in range(levels - 1)] == [
+        horizon // 2 ** (levels - 1 - i) for i in range(levels - 1)
+    ]
 
 
 def test_output_depends_on_diffusion_step() -> None:
@@ -71,9 +99,19 @@ def test_batch_elements_are_independent() -> None:
     assert not torch.allclose(changed[1], full[1])
 
 
-def test_sinusoidal_embedding() -> None:
-    emb = SinusoidalEmbedding(16)(torch.tensor([0, 1, 10]))
-    assert emb.shape == (3, 16)
-    torch.testing.assert_close(emb[0, :8], torch.zeros(8))
-    torch.testing.assert_close(emb[0, 8:], torch.ones(8))
-    assert not torch.allclose(emb[1], emb[2])
+@pytest.mark.parametrize("dim", [16, 6])
+def test_sinusoidal_embedding_is_the_closed_form(dim: int) -> None:
+    """``emb(t) = [sin(t w_0), ..., sin(t w_{h-1}), cos(t w_0), ..., cos(t w_{h-1})]`` with ``h = dim / 2`` and
+    ``w_i = 10000^(-i / (h - 1))``: frequencies from 1 down to 1 / 10000."""
+    steps = [0, 1, 2, 7, 63, 999]
+    emb = SinusoidalEmbedding(dim)(torch.tensor(steps)).double()
+    half = dim // 2
+    freqs = [10000 ** (-i / (half - 1)) for i in range(half)]
+    expected = torch.tensor(
+        [[math.sin(t * w) for w in freqs] + [math.cos(t * w) for w in freqs] for t in steps], dtype=torch.float64
+    )
+    assert emb.shape == (len(steps), dim)
+    torch.testing.assert_close(emb, expected, rtol=0, atol=2e-4)  # float32 angles up to 999 rad
+    # the first channel is sin(t), the slowest sin(t / 10000)
+    torch.testing.assert_close(emb[:, 0], torch.sin(torch.tensor(steps, dtype=torch.float64)), rtol=0, atol=2e-4)
+    assert emb[-1, half - 1].item() == pytest.approx(math.sin(999 / 10000), abs=1e-6)

@@ -52,17 +52,24 @@ class MixedWindowDataset:
     def __len__(self) -> int:
         return sum(len(p) for p in self.parts)
 
-    def counts(self, batch_size: int) -> list[int]:
-        """How many windows of a batch each dataset supplies (largest remainder, summing to ``batch_size``)."""
+    def counts(self, batch_size: int, rng: np.random.Generator | None = None) -> list[int]:
+        """How many windows of a batch each dataset supplies: its share of ``batch_size`` rounded down or up,
+        summing to ``batch_size``. Without ``rng``, by largest remainder (always the same datasets round up); with
+        ``rng``, by systematic rounding at a random offset, so that over many batches each dataset supplies exactly
+        its share on average (no draw is made when every share is a whole number of windows)."""
         raw = self.weights * batch_size
+        if rng is not None and not np.allclose(raw, np.round(raw), rtol=0.0, atol=1e-9):
+            edges = np.floor(np.cumsum(raw) + rng.random()).astype(int)
+            edges[-1] = batch_size
+            return np.diff(edges, prepend=0).tolist()
         counts = np.floor(raw).astype(int)
         for i in np.argsort(-(raw - counts), kind="stable")[: batch_size - counts.sum()]:
             counts[i] += 1
         return counts.tolist()
 
     def sample(self, batch_size: int, rng: np.random.Generator) -> np.ndarray:
-        """A batch with each dataset's share of windows, in dataset order."""
-        chunks = [p.sample(k, rng) for p, k in zip(self.parts, self.counts(batch_size), strict=True) if k]
+        """A batch with each dataset's share of windows (see :meth:`counts`), in dataset order."""
+        chunks = [p.sample(k, rng) for p, k in zip(self.parts, self.counts(batch_size, rng), strict=True) if k]
         return np.concatenate(chunks)
 
 
