@@ -20,6 +20,7 @@ import yaml
 from mlflow.tracking import MlflowClient
 
 from adaptdiffuser.config import ConfigError, apply_profile, load_params, params_from_dict
+from adaptdiffuser.errors import StageError
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.common import model_dir
 from adaptdiffuser.stages.pretrain import run_pretrain
@@ -27,11 +28,12 @@ from adaptdiffuser.stages.reference import run_reference
 from adaptdiffuser.sweep import (
     _fail_trials_of_dead_workers,
     apply_best,
+    load_worker_study,
     make_storage,
     reproduce_command,
-    run_trial,
-    trial_params,
+    retried_trial_number,
 )
+from adaptdiffuser.sweep_trials import plan_trial, run_trial, trial_raw
 
 REPO = Path(__file__).resolve().parents[1]
 TASK = "maze2d-umaze"  # the smoke profile's evolved task, the one a sweep reruns the phases of
@@ -41,7 +43,7 @@ TASK = "maze2d-umaze"  # the smoke profile's evolved task, the one a sweep rerun
 def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A smoke project after collect, reference and pretrain (what a sweep reuses)."""
     root = tmp_path_factory.mktemp("sweep")
-    shutil.copytree(REPO / "profiles", root / "profiles")
+    _copy_pipeline(root)
     apply_profile("smoke", root / "profiles", root / "params.yaml")
     params = load_params(root / "params.yaml")
     assert params.evolve == TASK
@@ -54,6 +56,13 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
         if old is not None:
             os.environ["MLFLOW_TRACKING_URI"] = old
     return root
+
+
+def _copy_pipeline(root: Path) -> None:
+    """What a sweep reads from a project besides params and outputs: dvc.yaml, the stage scripts, the profiles."""
+    shutil.copytree(REPO / "profiles", root / "profiles")
+    shutil.copytree(REPO / "pipeline", root / "pipeline")
+    shutil.copy(REPO / "dvc.yaml", root / "dvc.yaml")
 
 
 def _sweep(root: Path, *args: str) -> subprocess.CompletedProcess:
@@ -85,6 +94,11 @@ def test_two_workers_share_a_journal_study_and_mlflow_nests_the_trials(project: 
     assert len(trials) == 2
     assert len({t.user_attrs["worker_pid"] for t in trials}) == 2  # two processes each ran one trial
     assert all(sorted(t.intermediate_values) == [1, 2] for t in trials)  # a score after each phase
+    # each trial ran the commands dvc.yaml declares for the gain objective, and nothing else
+    trial_dir = project / "sweeps" / "adaptdiffuser" / f"trial_{trials[0].number}"
+    logs = sorted(p.name for p in (trial_dir / "logs").iterdir())
+    expected = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control")
+    assert logs == sorted(f"{stage}-phase{k}.log" for stage in expected for k in (1, 2))
 
     client, (parent, *children) = _sweep_runs(project, "adaptdiffuser")
     assert len(children) == 2 and parent.info.status == "FINISHED"
@@ -125,6 +139,62 @@ def test_a_bad_search_space_is_rejected_before_any_trial(project: Path, space: d
     assert not (project / "sweeps" / "bad.journal").exists()
 
 
+@pytest.mark.parametrize(
+    ("key", "stage"),
+    [
+        ("model.dim", "pretrain@maze2d-umaze"),  # phase 0 would be retrained by dvc repro
+        ("task.maze2d-umaze.collect.steps", "collect@maze2d-umaze"),  # so would the expert data
+        ("planner.sampler_steps", "reference@maze2d-umaze"),  # the reference scores depend on the planner section
+    ],
+)
+def test_a_key_that_changes_a_reused_stage_is_refused_before_any_trial(project: Path, key: str, stage: str) -> None:
+    """Trials reuse collect, reference and pretrain from the last ``dvc repro``: sweeping a key those depend on
+    (per dvc.yaml) would silently reuse outputs computed with the old value, so the sweep refuses it."""
+    raw = yaml.safe_load((project / "params.yaml").read_text())
+    raw["sweep"]["space"] = {key: {"low": 1, "high": 4}}
+    raw["sweep"]["study"] = "stale"
+    (project / "stale.yaml").write_text(yaml.safe_dump(raw))
+    load_params(project / "stale.yaml")  # a valid search space: the refusal comes from what the trials reuse
+    out = _sweep(project, "--params", "stale.yaml")
+    assert out.returncode == 2, out.stdout + out.stderr
+    assert f"sweep.space.{key}: changes stage {stage}" in out.stderr
+    assert not (project / "sweeps" / "stale.journal").exists()
+
+
+def test_trials_run_the_stages_dvc_yaml_declares(tmp_path: Path) -> None:
+    """The trial plan is read from dvc.yaml: a stage added to the phase chain runs in every trial, and an objective
+    whose stage dvc.yaml lacks is refused."""
+    _copy_pipeline(tmp_path)
+    raw = yaml.safe_load(apply_profile("smoke", tmp_path / "profiles", tmp_path / "params.yaml").read_text())
+    trial = trial_raw(raw, {})
+    plan = plan_trial(tmp_path, trial, "gain")
+    assert [stage.name for stage in plan.reused] == sorted(stage.name for stage in plan.reused)
+    assert {stage.kind for stage in plan.reused} == {"collect", "reference", "pretrain"}
+    assert set(plan.inputs) >= {"data/maze2d-umaze/dataset.parquet", "models/maze2d-umaze/phase0"}
+    assert plan.phases[0].metrics == {
+        "evaluate": "metrics/tasks/maze2d-umaze/phase1.json",
+        "control": "metrics/tasks/maze2d-umaze/phase1-control.json",
+    }
+    names = [stage.name for stage in plan.phases[0].stages]
+    assert names.index("finetune@phase1") < names.index("evaluate@phase1") < names.index("evaluate-control@phase1")
+
+    pipeline = yaml.safe_load((tmp_path / "dvc.yaml").read_text())
+    extra = dict(pipeline["stages"]["evaluate"], do=dict(pipeline["stages"]["evaluate"]["do"]))
+    extra["do"]["cmd"] = "python pipeline/evaluate.py --task ${evolve} --phase ${key} --again"
+    extra["do"]["outs"] = ["results/${evolve}/${key}-again"]
+    extra["do"]["deps"] = [*extra["do"]["deps"], "results/${evolve}/${key}"]
+    extra["do"].pop("metrics", None)
+    pipeline["stages"]["evaluate-again"] = extra
+    pipeline["stages"]["evaluate-control"]["do"]["deps"].append("results/${evolve}/${key}-again")
+    del pipeline["stages"]["evaluate-coin"]
+    (tmp_path / "dvc.yaml").write_text(yaml.safe_dump(pipeline, sort_keys=False))
+    names = [stage.name for stage in plan_trial(tmp_path, trial, "gain").phases[1].stages]
+    assert names.index("evaluate@phase2") < names.index("evaluate-again@phase2")
+    assert names.index("evaluate-again@phase2") < names.index("evaluate-control@phase2")
+    with pytest.raises(StageError, match="dvc.yaml has no stage evaluate-coin@phase1"):
+        plan_trial(tmp_path, trial, "coin")
+
+
 def test_apply_changes_only_the_swept_lines_of_the_repository_params(tmp_path: Path) -> None:
     repo_params = Path(__file__).resolve().parents[1] / "params.yaml"
     target = tmp_path / "params.yaml"
@@ -136,6 +206,20 @@ def test_apply_changes_only_the_swept_lines_of_the_repository_params(tmp_path: P
     assert [new.split("#")[0].split() for _, new in changed] == [["alpha:", "42.5"], ["max_error:", "1.25"]]
     assert all("#" in new for _, new in changed)  # the comments stay
     assert load_params(target).alpha == 42.5
+
+
+@pytest.mark.parametrize(("startup", "pruned"), [(1, True), (2, False)])
+def test_workers_prune_with_the_sweeps_pruner(tmp_path: Path, startup: int, pruned: bool) -> None:
+    """A worker's study prunes as ``sweep.pruner_startup_trials`` says (not Optuna's default of 5 startup trials)."""
+    sweep = params_from_dict({"sweep": {"pruner_startup_trials": startup}}).sweep
+    optuna.create_study(study_name="p", storage=make_storage(None, tmp_path, "p", 30), direction="maximize")
+    study = load_worker_study(None, tmp_path, "p", sweep, 0)
+    first = study.ask()
+    first.report(10.0, 1)
+    study.tell(first, 10.0)
+    second = study.ask()
+    second.report(0.0, 1)
+    assert bool(second.should_prune()) is pruned
 
 
 def test_trials_of_a_killed_worker_are_failed_and_retried_once(tmp_path: Path) -> None:
@@ -150,7 +234,10 @@ def test_trials_of_a_killed_worker_are_failed_and_retried_once(tmp_path: Path) -
     assert states[trial.number] == optuna.trial.TrialState.FAIL
     assert states[other.number] == optuna.trial.TrialState.RUNNING  # a live worker's trial is left alone
     (waiting,) = study.get_trials(states=(optuna.trial.TrialState.WAITING,))
-    assert waiting.params == {} and waiting.system_attrs["fixed_params"] == {"alpha": trial.params["alpha"]}
+    assert waiting.params == {"alpha": trial.params["alpha"]} and retried_trial_number(waiting) == trial.number
+    assert "worker_pid" not in waiting.user_attrs  # the worker that runs the retry sets its own
+    _fail_trials_of_dead_workers(study, {4242})  # nothing of that worker is left running: no second retry
+    assert len(study.trials) == 3
 
 
 def _postgres_bin() -> Path | None:
@@ -226,7 +313,8 @@ def test_a_trial_sweeps_a_locomotion_task_on_its_gain_over_the_control(tmp_path:
     """``sweep.task: hopper-medium``: the trial evolves the hopper (not ``evolve``), runs each phase's control and
     scores the phase by its paired gain, evaluated on the sweep's own episodes."""
     name = "hopper-medium"
-    raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", tmp_path / "params.yaml").read_text())
+    _copy_pipeline(tmp_path)
+    raw = yaml.safe_load(apply_profile("smoke", tmp_path / "profiles", tmp_path / "params.yaml").read_text())
     raw["phases"] = {"phase1": {"previous": 0}}
     raw["sweep"].update(
         task=name, objective="gain", space={"evolution.discriminate.quantile": {"low": 0.2, "high": 0.8}}
@@ -239,17 +327,18 @@ def test_a_trial_sweeps_a_locomotion_task_on_its_gain_over_the_control(tmp_path:
         run_collect(base, name, tmp_path, progress=False)
         run_reference(base, name, tmp_path, progress=False)
         run_pretrain(base, name, tmp_path, device, progress=False)
-        params = trial_params(raw, {"evolution.discriminate.quantile": 0.3})
+        trial = trial_raw(raw, {"evolution.discriminate.quantile": 0.3})
+        params = params_from_dict(trial)
         assert params.evolve == name and params.phase(1).discriminate.quantile == 0.3
         assert params.resolve(name).evaluate.seed == base.sweep.evaluate_seed
         reports: list[tuple[int, float, dict]] = []
-        trial = tmp_path / "trial"
-        value = run_trial(params, base.sweep, tmp_path, trial, device, lambda k, v, m: reports.append((k, v, m)))
+        folder = tmp_path / "trial"
+        value = run_trial(trial, base.sweep, tmp_path, folder, "cpu", lambda k, v, m: reports.append((k, v, m)))
     finally:
         if old is not None:
             os.environ["MLFLOW_TRACKING_URI"] = old
     ((k, reported, metrics),) = reports
     assert k == 1 and value == reported == metrics["control"]["gain_mean"]
     assert "gold_coin" not in metrics  # a locomotion task has no coin evaluation
-    assert (tmp_path / "trial" / model_dir(name, 1, 0, control=True)).exists()
+    assert (folder / model_dir(name, 1, 0, control=True)).exists()
     assert reproduce_command({"evolve": name}) == "dvc exp run -S 'evolve=hopper-medium'"

@@ -2,14 +2,18 @@
 
 Each trial reruns the evolution phases of the swept task (``sweep.task``, default ``evolve``: generate,
 discriminate, fine-tune, evaluate, and the equal-compute control or the gold-coin evaluation when the objective
-needs them) for every training seed, in its own folder ``sweeps/<study>/trial_<n>/``, reusing the project's cached
-data, reference scores and phase-0 models, and reports its objective after every phase so hopeless trials are
-pruned. The default objective is the final phase's gain over its control (the number the results lead with), not
-its raw score. Trials evaluate on their own episodes (``sweep.evaluate_seed``), never on the pipeline's.
+needs them) for every training seed, in its own folder ``sweeps/<study>/trial_<n>/``, with the stage commands of
+``dvc.yaml`` (see :mod:`adaptdiffuser.sweep_trials`), reusing the project's cached data, reference scores and
+phase-0 models (a search key that would change those is refused), and reports its objective after every phase so
+hopeless trials are pruned. The default objective is the final phase's gain over its control (the number the
+results lead with), not its raw score. Trials evaluate on their own episodes (``sweep.evaluate_seed``), never on
+the pipeline's.
 
 Workers are processes sharing one Optuna storage: a journal file by default (``sweeps/<study>.journal``), or any
-RDB URL such as ``postgresql://user@host/db`` for workers on several machines (then Optuna heartbeats fail and
-retry the trials of killed workers; with the journal file the sweep command does that for its own workers).
+RDB URL such as ``postgresql://user@host/db`` for workers on several machines (its password from ``PGPASSWORD``
+or ``~/.pgpass``, never logged: see :func:`adaptdiffuser.tracking.redact`). The sweep command fails and retries
+(once) the trial of any of its workers that dies, on both storages, and hands the rest of its share to a new
+worker (:func:`run_workers`); on PostgreSQL, Optuna heartbeats do the same for workers on other machines.
 
 MLflow: one parent run per sweep, one child run per trial (params, per-phase scores, objective), and each
 trial's stage runs nested under its child run.
@@ -17,51 +21,25 @@ trial's stage runs nested under its child run.
 
 from __future__ import annotations
 
-import math
+import copy
 import multiprocessing
 import os
+import sys
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from multiprocessing.connection import wait
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
 
 import optuna
 import yaml
 
-from adaptdiffuser.config import Params, SearchDimension, SweepParams, params_from_dict, set_dotted
+from adaptdiffuser.config import SearchDimension, SweepParams, params_from_dict
 from adaptdiffuser.errors import StageError
-from adaptdiffuser.tracking import PARENT_RUN_ENV
-
-
-def shared_inputs(task: str) -> tuple[Path, ...]:
-    """The cached pipeline outputs of the swept task that every trial reuses (phase 0 is never retrained)."""
-    from adaptdiffuser.stages.common import collect_dir, dataset_path, phase_models_dir, reference_path
-
-    return (dataset_path(task), collect_dir(task), phase_models_dir(task, 0), reference_path(task))
-
-
-def swept_task(params: Params) -> str:
-    """The task the trials evolve: ``sweep.task``, or ``evolve`` when that is null."""
-    task = params.sweep.task if params.sweep.task is not None else params.evolve
-    if task is None:
-        raise StageError("the sweep needs a task to evolve: set sweep.task or evolve")
-    return task
-
-
-def objective_value(sweep: SweepParams, metrics: dict[str, dict]) -> float:
-    """The sweep's score of one evaluated phase from its ``evaluate`` metrics (and ``control`` or ``gold_coin``
-    where the objective needs them): ``gain`` = score - control score (paired, mean over seeds), ``score`` =
-    normalized score, ``coin`` = 100 x coin both-rate, ``mix`` = (1 - coin_weight) x score + coin_weight x coin."""
-    if sweep.objective == "gain":
-        return float(metrics["control"]["gain_mean"])
-    score = float(metrics["evaluate"]["score_mean"])
-    if sweep.objective == "score":
-        return score
-    coin = 100.0 * float(metrics["gold_coin"]["both_rate"])
-    if sweep.objective == "coin":
-        return coin
-    return (1.0 - sweep.coin_weight) * score + sweep.coin_weight * coin
+from adaptdiffuser.sweep_trials import check_sweep_plan, run_trial, swept_task, trial_raw
+from adaptdiffuser.tracking import PARENT_RUN_ENV, loggable, redact_text
 
 
 def suggest(trial: optuna.Trial, dim: SearchDimension) -> Any:
@@ -71,22 +49,6 @@ def suggest(trial: optuna.Trial, dim: SearchDimension) -> Any:
     if dim.kind == "int":
         return trial.suggest_int(dim.key, int(dim.low), int(dim.high), log=dim.log)
     return trial.suggest_float(dim.key, dim.low, dim.high, log=dim.log)
-
-
-def trial_params(raw: dict[str, Any], values: dict[str, Any]) -> Params:
-    """The project's params with a trial's values set (and validated), evolving the swept task and evaluating on
-    the sweep's own episodes (``sweep.evaluate_seed``, also where the task overrides ``evaluate``); the ``sweep``
-    section itself is left out (pass ``base.sweep`` to :func:`run_trial`)."""
-    base = params_from_dict(raw)
-    task = swept_task(base)
-    raw = {key: value for key, value in raw.items() if key != "sweep"}
-    for key, value in values.items():
-        raw = set_dotted(raw, key, value)
-    raw = set_dotted(raw, "evolve", task)
-    raw = set_dotted(raw, "evaluate.seed", base.sweep.evaluate_seed)
-    if "seed" in (raw.get("task", {}).get(task, {}) or {}).get("evaluate", {}):
-        raw = set_dotted(raw, f"task.{task}.evaluate.seed", base.sweep.evaluate_seed)
-    return params_from_dict(raw)
 
 
 def reproduce_command(values: dict[str, Any]) -> str:
@@ -100,23 +62,41 @@ def _yaml_scalar(value: Any) -> str:
 
 def make_storage(spec: str | None, root: Path, study: str, heartbeat_s: int) -> optuna.storages.BaseStorage:
     """A journal file (``spec`` a path; default ``sweeps/<study>.journal``) or, for a URL such as
-    ``postgresql://...``, an RDB storage with heartbeats that fail and retry (once) the trials of dead workers."""
+    ``postgresql://...``, an RDB storage with heartbeats that fail and retry (once, :func:`retry_callback`) the
+    trials of dead workers anywhere. An error opening it never shows the URL's password."""
     if spec is None or "://" not in spec:
         path = Path(spec) if spec else root / "sweeps" / f"{study}.journal"
         path.parent.mkdir(parents=True, exist_ok=True)
         from optuna.storages.journal import JournalFileBackend
 
         return optuna.storages.JournalStorage(JournalFileBackend(str(path)))
-    retry = getattr(optuna.storages, "RetryHeartbeatStaleTrialCallback", None)
-    if retry is not None:  # optuna >= 4.9
-        callback = {"heartbeat_stale_trial_callback": retry(max_retry=1)}
-    else:
-        callback = {"failed_trial_callback": optuna.storages.RetryFailedTrialCallback(max_retry=1)}
+    new_name = hasattr(optuna.storages, "RetryHeartbeatStaleTrialCallback")  # optuna >= 4.9
+    callback = {"heartbeat_stale_trial_callback" if new_name else "failed_trial_callback": retry_callback()}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        return optuna.storages.RDBStorage(
-            spec, heartbeat_interval=heartbeat_s, grace_period=2 * heartbeat_s, **callback
-        )
+        try:
+            return optuna.storages.RDBStorage(
+                spec, heartbeat_interval=heartbeat_s, grace_period=2 * heartbeat_s, **callback
+            )
+        except Exception as err:  # one redacted line, and no chained traceback that could show the URL
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            raise StageError(f"cannot open the Optuna storage {redact_text(spec)}: {redact_text(first)}") from None
+
+
+def retry_callback() -> Callable[[optuna.Study, optuna.trial.FrozenTrial], None]:
+    """Optuna's retry callback, one retry per trial: it adds a WAITING copy of a failed trial with the same params,
+    marked as a retry (``RetryHeartbeatStaleTrialCallback.retried_trial_number``: the original trial's number)."""
+    retry = getattr(optuna.storages, "RetryHeartbeatStaleTrialCallback", None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        warnings.simplefilter("ignore", FutureWarning)
+        return (retry or optuna.storages.RetryFailedTrialCallback)(max_retry=1)
+
+
+def retried_trial_number(trial: optuna.trial.FrozenTrial) -> int | None:
+    """The number of the trial that ``trial`` retries (the last one if it retries a retry), or None."""
+    history = trial.system_attrs.get("retry_history") or []
+    return int(history[-1]) if history else None
 
 
 @dataclass
@@ -132,69 +112,12 @@ class TrialContext:
     threads: int
 
 
-def check_shared_inputs(root: Path, task: str) -> None:
-    """The cached pipeline outputs every trial reuses must exist (a sweep never retrains phase 0)."""
-    for rel in shared_inputs(task):
-        if not (root / rel).exists():
-            raise FileNotFoundError(f"{rel} not found: run `dvc repro` (at least up to pretrain) before a sweep")
-
-
-def _link_shared_inputs(root: Path, trial_dir: Path, task: str) -> None:
-    check_shared_inputs(root, task)
-    for rel in shared_inputs(task):
-        source = (root / rel).resolve()
-        target = trial_dir / rel
-        target.parent.mkdir(parents=True, exist_ok=True)
-        if not target.exists():
-            target.symlink_to(source, target_is_directory=source.is_dir())
-
-
-def run_trial(
-    params: Params,
-    sweep: SweepParams,
-    root: Path,
-    trial_dir: Path,
-    device: Any,
-    report: Callable[[int, float, dict], None],
-) -> float:
-    """Run every evolution phase of ``params`` (from :func:`trial_params`) in ``trial_dir``, for every training
-    seed; ``report(k, value, metrics)`` after each phase (it may raise :class:`optuna.TrialPruned`). Returns the
-    final phase's objective."""
-    from adaptdiffuser.stages.discriminate import run_discriminate
-    from adaptdiffuser.stages.evaluate import run_evaluate
-    from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
-    from adaptdiffuser.stages.finetune import run_finetune
-    from adaptdiffuser.stages.generate import run_generate
-
-    if not params.phases or params.evolve is None:
-        raise StageError("the sweep needs at least one evolution phase under 'phases' and a task to 'evolve'")
-    task = params.evolve
-    objective = sweep.objective
-    _link_shared_inputs(root, trial_dir, task)
-    value = math.nan
-    for phase in params.phases:
-        k = phase.index
-        run_generate(params, task, trial_dir, k, device, progress=False)
-        run_discriminate(params, task, trial_dir, k, progress=False)
-        run_finetune(params, task, trial_dir, k, device, progress=False)
-        metrics = {"evaluate": run_evaluate(params, task, trial_dir, k, device, progress=False)}
-        if objective == "gain":
-            run_finetune(params, task, trial_dir, k, device, progress=False, control=True)
-            metrics["control"] = run_evaluate(params, task, trial_dir, k, device, progress=False, control=True)
-        if objective in ("coin", "mix"):
-            metrics["gold_coin"] = run_evaluate_coin(params, task, trial_dir, k, device, progress=False)
-        value = objective_value(sweep, metrics)
-        report(k, value, metrics)
-    return value
-
-
 def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> None:
     """One worker process: load the shared study and run ``n_trials`` trials."""
     import mlflow
     import torch
     from mlflow.tracking import MlflowClient
 
-    from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.tracking import ensure_experiment
 
     torch.set_num_threads(ctx.threads)
@@ -204,21 +127,19 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
     base = params_from_dict(ctx.raw)
     sweep = base.sweep
     experiment_id = ensure_experiment(swept_task(base), ctx.root)
-    storage = make_storage(ctx.storage, ctx.root, study_name, sweep.heartbeat_s)
-    study = optuna.load_study(study_name=study_name, storage=storage, sampler=_sampler(sweep, worker))
-    device = resolve_device(ctx.device)
+    study = load_worker_study(ctx.storage, ctx.root, study_name, sweep, worker)
 
     def objective(trial: optuna.Trial) -> float:
         trial.set_user_attr("worker_pid", os.getpid())
         values = {dim.key: suggest(trial, dim) for dim in sweep.space}
-        params = trial_params(ctx.raw, values)
+        raw = trial_raw(ctx.raw, values)
         run = client.create_run(
             experiment_id,
             run_name=f"{study_name}-trial{trial.number}",
             tags={"mlflow.parentRunId": ctx.parent_run_id, "sweep": study_name, "trial": str(trial.number)},
         )
         run_id = run.info.run_id
-        for key, value in values.items():
+        for key, value in loggable(values).items():
             client.log_param(run_id, key, value)
         os.environ[PARENT_RUN_ENV] = run_id
         status = "FAILED"
@@ -237,7 +158,7 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
 
         try:
             trial_dir = ctx.root / "sweeps" / study_name / f"trial_{trial.number}"
-            value = run_trial(params, sweep, ctx.root, trial_dir, device, report)
+            value = run_trial(raw, sweep, ctx.root, trial_dir, ctx.device, report, threads=ctx.threads)
             client.log_metric(run_id, "final_objective", value)
             status = "FINISHED"
             return value
@@ -250,6 +171,22 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
             client.set_terminated(run_id, status)
 
     study.optimize(objective, n_trials=n_trials, catch=(StageError,))
+
+
+def load_worker_study(
+    storage: str | None, root: Path, study_name: str, sweep: SweepParams, worker: int
+) -> optuna.Study:
+    """The shared study as worker number ``worker`` opens it: its own storage connection (with the heartbeat and
+    retry settings of :func:`make_storage`) and a sampler seeded per worker."""
+    study_storage = make_storage(storage, root, study_name, sweep.heartbeat_s)
+    return optuna.load_study(
+        study_name=study_name, storage=study_storage, sampler=_sampler(sweep, worker), pruner=_pruner(sweep)
+    )
+
+
+def _pruner(sweep: SweepParams) -> optuna.pruners.BasePruner:
+    """Median pruning after ``sweep.pruner_startup_trials`` finished trials, from the first phase on."""
+    return optuna.pruners.MedianPruner(n_startup_trials=sweep.pruner_startup_trials, n_warmup_steps=0)
 
 
 def _sampler(sweep: SweepParams, worker: int) -> optuna.samplers.BaseSampler:
@@ -290,30 +227,18 @@ def run_sweep(
     if not params.phases:
         raise StageError("the sweep reruns the evolution phases: declare 'phases'")
     task = swept_task(params)
-    check_shared_inputs(root, task)
+    check_sweep_plan(root, raw)  # refuses keys that change a reused stage, and missing inputs, before any trial
     uri = tracking_uri(root)
     client = MlflowClient(uri)
     experiment_id = ensure_experiment(task, root)
-    parent = client.create_run(
-        experiment_id,
-        run_name=f"sweep-{sweep.study}",
-        tags={"stage": "sweep", "sweep": sweep.study, "storage": storage or "journal file"},
-    )
-    parent_id = parent.info.run_id
-    client.log_param(parent_id, "trials", trials)
-    client.log_param(parent_id, "workers", workers)
-    client.log_param(parent_id, "objective", sweep.objective)
-    client.log_param(parent_id, "task", task)
-    client.log_param(parent_id, "evaluate_seed", sweep.evaluate_seed)
-    for dim in sweep.space:
-        client.log_param(parent_id, f"space.{dim.key}", _describe(dim))
+    parent_id = start_parent_run(client, experiment_id, sweep, task, storage, trials, workers)
     study_storage = make_storage(storage, root, sweep.study, sweep.heartbeat_s)
     study = optuna.create_study(
         study_name=sweep.study,
         storage=study_storage,
         direction="maximize",
         load_if_exists=True,
-        pruner=optuna.pruners.MedianPruner(n_startup_trials=sweep.pruner_startup_trials, n_warmup_steps=0),
+        pruner=_pruner(sweep),
     )
     ctx = TrialContext(
         root=root.resolve(),
@@ -326,12 +251,9 @@ def run_sweep(
     )
     shares = [trials // workers + (1 if i < trials % workers else 0) for i in range(workers)]
     spawn = multiprocessing.get_context("spawn")
-    processes = [spawn.Process(target=_worker, args=(ctx, sweep.study, n, i)) for i, n in enumerate(shares) if n]
-    for process in processes:
-        process.start()
-    for process in processes:
-        process.join()
-    _fail_trials_of_dead_workers(study, {p.pid for p in processes if p.exitcode != 0})
+    dead = run_workers(study, lambda i, n: spawn.Process(target=_worker, args=(ctx, sweep.study, n, i)), shares)
+    if dead:
+        client.set_tag(parent_id, "dead_workers", str(len(dead)))
     completed = [t for t in study.trials if t.state == optuna.trial.TrialState.COMPLETE]
     if not completed:
         client.set_terminated(parent_id, "FAILED")
@@ -339,12 +261,32 @@ def run_sweep(
     best = study.best_trial
     command = reproduce_command(best.params | ({"evolve": task} if task != params.evolve else {}))
     client.log_metric(parent_id, "best_objective", best.value)
-    client.set_tag(parent_id, "reproduce", command)
-    for key, value in best.params.items():
-        client.log_param(parent_id, f"best.{key}", value)
+    client.set_tag(parent_id, "reproduce", redact_text(command))
+    for key, value in loggable({f"best.{key}": value for key, value in best.params.items()}).items():
+        client.log_param(parent_id, key, value)
     _log_study_plots(study, client, parent_id, root / "sweeps" / sweep.study)
     client.set_terminated(parent_id, "FINISHED")
     return SweepResult(study, dict(best.params), float(best.value), command, parent_id)
+
+
+def start_parent_run(
+    client: Any,
+    experiment_id: str,
+    sweep: SweepParams,
+    task: str,
+    storage: str | None,
+    trials: int,
+    workers: int,
+) -> str:
+    """The sweep's parent MLflow run (tags and params redacted: a storage URL keeps its user and host, never its
+    password); returns its id."""
+    tags = {"stage": "sweep", "sweep": sweep.study, "storage": storage or "journal file"}
+    run = client.create_run(experiment_id, run_name=f"sweep-{sweep.study}", tags=loggable(tags, 5000))
+    params = {"trials": trials, "workers": workers, "objective": sweep.objective, "task": task}
+    params |= {"evaluate_seed": sweep.evaluate_seed} | {f"space.{dim.key}": _describe(dim) for dim in sweep.space}
+    for key, value in loggable(params).items():
+        client.log_param(run.info.run_id, key, value)
+    return run.info.run_id
 
 
 def _describe(dim: SearchDimension) -> str:
@@ -353,14 +295,70 @@ def _describe(dim: SearchDimension) -> str:
     return f"{dim.kind} [{dim.low:g}, {dim.high:g}]{' log' if dim.log else ''}"
 
 
-def _fail_trials_of_dead_workers(study: optuna.Study, dead_pids: set[int]) -> None:
-    """Journal storage has no heartbeat: trials left RUNNING by a worker that died are marked FAILED here, and
-    their params are enqueued once to be retried by the next run of the sweep."""
-    for trial in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
-        if trial.user_attrs.get("worker_pid") in dead_pids:
-            study._storage.set_trial_state_values(trial._trial_id, optuna.trial.TrialState.FAIL)
-            if not trial.user_attrs.get("retry_of"):
-                study.enqueue_trial(trial.params, user_attrs={"retry_of": trial.number})
+def _fail_trials_of_dead_workers(study: optuna.Study, dead_pids: set[int]) -> list[int]:
+    """Fail the trials left RUNNING by workers that died (their ``worker_pid`` user attribute) and retry each once,
+    with public API only, the same way for both storages: ``study.tell(number, state=FAIL)`` and Optuna's own
+    retry callback (:func:`retry_callback`), the one RDB heartbeats use. (Optuna's journal storage has no
+    heartbeat, so ``optuna.storages.fail_stale_trials`` cannot see its stale trials.) A trial that something else
+    finished meanwhile (an RDB heartbeat check in another worker, which retries it itself) is left alone. Returns
+    the numbers of the trials failed here."""
+    failed: list[int] = []
+    for trial in study.get_trials(deepcopy=True, states=(optuna.trial.TrialState.RUNNING,)):
+        if trial.user_attrs.get("worker_pid") not in dead_pids:
+            continue
+        try:
+            study.tell(trial.number, state=optuna.trial.TrialState.FAIL)
+        except (ValueError, optuna.exceptions.UpdateFinishedTrialError):
+            continue  # finished (and, if stale, retried) by someone else since the list was read
+        retry = copy.deepcopy(trial)
+        retry.user_attrs = {k: v for k, v in trial.user_attrs.items() if k != "worker_pid"}  # set by the next one
+        retry_callback()(study, retry)
+        failed.append(trial.number)
+    return failed
+
+
+def run_workers(
+    study: optuna.Study, make_worker: Callable[[int, int], BaseProcess], shares: Sequence[int]
+) -> list[int]:
+    """Run one worker process per share (``make_worker(index, n_trials)`` builds it, unstarted) until all exit.
+
+    When one dies (nonzero exit code: killed, out of memory, crashed), its running trials are failed and retried
+    once (:func:`_fail_trials_of_dead_workers`) and a new worker, with a new index (so a new sampler seed), runs the
+    rest of its share plus those retries, so the study ends with the requested number of finished trials besides
+    the failed ones. At most ``len(shares)`` workers are replaced, so a worker that always crashes cannot loop.
+    Returns the pids of the workers that died."""
+    running: dict[Any, tuple[BaseProcess, int]] = {}
+
+    def start(index: int, n: int) -> None:
+        process = make_worker(index, n)
+        process.start()
+        running[process.sentinel] = (process, n)
+
+    for index, n in enumerate(shares):
+        if n:
+            start(index, n)
+    dead: list[int] = []
+    next_index = len(shares)
+    while running:
+        for sentinel in wait(list(running)):
+            process, n = running.pop(sentinel)
+            process.join()
+            if process.exitcode == 0:
+                continue
+            assert process.pid is not None
+            dead.append(process.pid)
+            failed = _fail_trials_of_dead_workers(study, {process.pid})
+            trials = study.get_trials(deepcopy=False)
+            done = {t.number for t in trials if t.user_attrs.get("worker_pid") == process.pid and t.state.is_finished()}
+            retries = sum(1 for t in trials if retried_trial_number(t) in done)
+            left = n - len(done) + retries
+            message = f"worker {process.pid} died (exit code {process.exitcode}); failed and retried trials {failed}"
+            if left > 0 and next_index < 2 * len(shares):
+                start(next_index, left)
+                message += f"; worker {next_index} runs its {left} remaining trial(s)"
+                next_index += 1
+            print(message, file=sys.stderr, flush=True)
+    return dead
 
 
 def _log_study_plots(study: optuna.Study, client: Any, run_id: str, folder: Path) -> None:

@@ -12,7 +12,7 @@ from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.io import write_json
 from adaptdiffuser.stages.common import collect_dir, dataset_path, file_digest
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.tracking import log_params, stage_run
 
 
 def run_collect(params: Params, task_name: str, root: Path, progress: bool = True) -> Path:
@@ -28,7 +28,7 @@ def run_collect(params: Params, task_name: str, root: Path, progress: bool = Tru
         stats = {"steps": len(traj), "episodes": len(traj.episodes()), "reward_mean": float(traj.reward.mean())}
         mlflow.log_metrics(stats)
         digest = file_digest(out)
-        mlflow.log_param("data.sha256", digest)
+        log_params({"data.sha256": digest})
         summary = {"dataset": str(dataset_path(task.name)), "sha256": digest, **stats, **family.describe(task)}
         write_json(root / collect_dir(task.name) / "collect.json", summary)
     return out

@@ -1,0 +1,227 @@
+"""One sweep trial: the evolution stages of ``dvc.yaml`` run in the trial's own folder with the trial's params.
+
+A trial runs the stages of each phase that its objective needs (``evaluate@phase<k>``, plus ``evaluate-control``
+for ``gain`` or ``evaluate-coin`` for ``coin``/``mix``, and everything they depend on within the phase chain), with
+the exact commands DVC would run, and reads the objective from the metrics files those stages declare. Every other
+stage they depend on (collect, reference, pretrain) is reused from the project's last ``dvc repro``: a search key
+that would change one of those is refused before any trial starts, naming the key and the stage.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import subprocess
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from adaptdiffuser.config import Params, SweepParams, params_from_dict, set_dotted
+from adaptdiffuser.dvc_stages import DvcStage, key_touches, resolve_stages, upstream
+from adaptdiffuser.errors import StageError
+
+# The stages (by their dvc.yaml name) whose metrics an objective reads, and the key each one's metrics go under.
+OBJECTIVE_STAGES: dict[str, tuple[str, ...]] = {
+    "score": ("evaluate",),
+    "gain": ("evaluate", "evaluate-control"),
+    "coin": ("evaluate", "evaluate-coin"),
+    "mix": ("evaluate", "evaluate-coin"),
+}
+METRICS_KEY = {"evaluate": "evaluate", "evaluate-control": "control", "evaluate-coin": "gold_coin"}
+
+
+def swept_task(params: Params) -> str:
+    """The task the trials evolve: ``sweep.task``, or ``evolve`` when that is null."""
+    task = params.sweep.task if params.sweep.task is not None else params.evolve
+    if task is None:
+        raise StageError("the sweep needs a task to evolve: set sweep.task or evolve")
+    return task
+
+
+def objective_value(sweep: SweepParams, metrics: dict[str, dict]) -> float:
+    """The sweep's score of one evaluated phase from its ``evaluate`` metrics (and ``control`` or ``gold_coin``
+    where the objective needs them): ``gain`` = score - control score (paired, mean over seeds), ``score`` =
+    normalized score, ``coin`` = 100 x coin both-rate, ``mix`` = (1 - coin_weight) x score + coin_weight x coin."""
+    if sweep.objective == "gain":
+        return float(metrics["control"]["gain_mean"])
+    score = float(metrics["evaluate"]["score_mean"])
+    if sweep.objective == "score":
+        return score
+    coin = 100.0 * float(metrics["gold_coin"]["both_rate"])
+    if sweep.objective == "coin":
+        return coin
+    return (1.0 - sweep.coin_weight) * score + sweep.coin_weight * coin
+
+
+def trial_raw(raw: dict[str, Any], values: dict[str, Any]) -> dict[str, Any]:
+    """The project's params (as loaded from ``params.yaml``) with a trial's values set, evolving the swept task and
+    evaluating on the sweep's own episodes (``sweep.evaluate_seed``, also where the task overrides ``evaluate``);
+    the ``sweep`` section itself is left out. Validated; returned as a plain mapping for the trial's params.yaml."""
+    base = params_from_dict(raw)
+    task = swept_task(base)
+    out = {key: value for key, value in raw.items() if key != "sweep"}
+    for key, value in values.items():
+        out = set_dotted(out, key, value)
+    out = set_dotted(out, "evolve", task)
+    out = set_dotted(out, "evaluate.seed", base.sweep.evaluate_seed)
+    if "seed" in (out.get("task", {}).get(task, {}) or {}).get("evaluate", {}):
+        out = set_dotted(out, f"task.{task}.evaluate.seed", base.sweep.evaluate_seed)
+    params_from_dict(out)
+    return out
+
+
+@dataclass(frozen=True)
+class PhaseStages:
+    """What a trial runs for phase k: the stages in order, and the metrics file of each objective stage."""
+
+    index: int
+    stages: tuple[DvcStage, ...]
+    metrics: dict[str, str]
+
+
+@dataclass(frozen=True)
+class TrialPlan:
+    """The stages a trial runs per phase, the stages it reuses from the project, and the project files it reads."""
+
+    phases: tuple[PhaseStages, ...]
+    reused: tuple[DvcStage, ...]
+    inputs: tuple[str, ...]
+
+
+def plan_trial(root: Path, raw: dict[str, Any], objective: str) -> TrialPlan:
+    """Resolve ``root/dvc.yaml`` with a trial's params (from :func:`trial_raw`) into the trial's stages."""
+    params = params_from_dict(raw)
+    if not params.phases or params.evolve is None:
+        raise StageError("the sweep needs at least one evolution phase under 'phases' and a task to 'evolve'")
+    stages = resolve_stages(root / "dvc.yaml", raw)
+    index = {phase.name: phase.index for phase in params.phases}
+    wanted = OBJECTIVE_STAGES[objective]
+    targets = [stage for stage in stages if stage.key in index and stage.kind in wanted]
+    for phase in params.phases:
+        missing = set(wanted) - {stage.kind for stage in targets if stage.key == phase.name}
+        if missing:
+            raise StageError(
+                f"dvc.yaml has no stage {sorted(missing)[0]}@{phase.name}: the '{objective}' objective reads it"
+            )
+    needed = upstream(stages, targets)
+    run = [stage for stage in needed if stage.key in index]
+    reused = tuple(stage for stage in needed if stage.key not in index)
+    phases = tuple(
+        PhaseStages(
+            index=k,
+            stages=tuple(stage for stage in run if stage.key == name),
+            metrics={METRICS_KEY[s.kind]: _metrics_file(s) for s in targets if s.key == name},
+        )
+        for name, k in sorted(index.items(), key=lambda item: item[1])
+    )
+    inputs = sorted(
+        {
+            dep
+            for stage in run
+            for dep in stage.deps
+            if dep != "params.yaml" and not any(other.produces(dep) for other in run)
+        }
+    )
+    return TrialPlan(phases, reused, tuple(inputs))
+
+
+def _metrics_file(stage: DvcStage) -> str:
+    files = [out for out in stage.outs if out.endswith(".json")]
+    if len(files) != 1:
+        raise StageError(f"dvc.yaml: stage {stage.name} must declare exactly one .json metrics file, got {files}")
+    return files[0]
+
+
+def check_sweep_plan(root: Path, raw: dict[str, Any]) -> TrialPlan:
+    """Before any trial: no search key may change a stage the trials reuse, and what they reuse must exist."""
+    base = params_from_dict(raw)
+    plan = plan_trial(root, trial_raw(raw, {}), base.sweep.objective)
+    for dim in base.sweep.space:
+        for stage in plan.reused:
+            for entry in stage.params:
+                if key_touches(dim.key, entry):
+                    raise StageError(
+                        f"sweep.space.{dim.key}: changes stage {stage.name} (it depends on params '{entry}'), which "
+                        "every trial reuses from the last dvc repro; sweep a key of the evolution phases, or run "
+                        f"`dvc exp run -S {dim.key}=...` to retrain"
+                    )
+    for path in plan.inputs:
+        if not (root / path).exists() and any(stage.produces(path) for stage in plan.reused):
+            raise FileNotFoundError(f"{path} not found: run `dvc repro` (at least up to pretrain) before a sweep")
+    return plan
+
+
+def run_trial(
+    raw: dict[str, Any],
+    sweep: SweepParams,
+    root: Path,
+    trial_dir: Path,
+    device: str,
+    report: Callable[[int, float, dict], None],
+    threads: int | None = None,
+) -> float:
+    """Run a trial's stages (params ``raw`` from :func:`trial_raw`) in ``trial_dir`` phase by phase, every training
+    seed inside each stage as in the pipeline; ``report(k, value, metrics)`` after each phase (it may raise
+    :class:`optuna.TrialPruned`). Returns the final phase's objective."""
+    from adaptdiffuser.io import atomic_path, read_json
+    from adaptdiffuser.tracking import tracking_uri
+
+    plan = plan_trial(root, raw, sweep.objective)
+    trial_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(trial_dir / "params.yaml") as tmp:
+        tmp.write_text(yaml.safe_dump(raw, sort_keys=False))
+    _link_inputs(root, trial_dir, plan)
+    env = dict(os.environ, ADAPTDIFFUSER_DEVICE=device, MLFLOW_TRACKING_URI=tracking_uri(root))
+    if threads is not None:
+        env["OMP_NUM_THREADS"] = str(threads)
+    value = float("nan")
+    for phase in plan.phases:
+        for stage in phase.stages:
+            run_stage_command(stage, trial_dir, env)
+        metrics = {key: read_json(trial_dir / path, f"{key} metrics") for key, path in phase.metrics.items()}
+        value = objective_value(sweep, metrics)
+        report(phase.index, value, metrics)
+    return value
+
+
+def _link_inputs(root: Path, trial_dir: Path, plan: TrialPlan) -> None:
+    """Symlink into ``trial_dir`` every project file the trial's stages read but do not make."""
+    for rel in plan.inputs:
+        source, target = (root / rel).resolve(), trial_dir / rel
+        if not source.exists():
+            if any(stage.produces(rel) for stage in plan.reused):
+                raise FileNotFoundError(f"{rel} not found: run `dvc repro` (at least up to pretrain) before a sweep")
+            continue  # a code dep of a project without that file: the stage reports it if it needs it
+        if not target.exists():
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.symlink_to(source, target_is_directory=source.is_dir())
+
+
+def _die_with_parent() -> None:
+    """In the child, before exec: on Linux, ask for SIGKILL when the worker that started it dies (a killed worker
+    leaves no stage running on in its trial folder); elsewhere nothing."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
+def run_stage_command(stage: DvcStage, cwd: Path, env: dict[str, str]) -> None:
+    """Run a stage's ``cmd`` as DVC would (in ``cwd``; ``python`` is this interpreter), output in ``logs/``."""
+    argv = shlex.split(stage.cmd)
+    if argv and argv[0] in ("python", "python3"):
+        argv[0] = sys.executable
+    log = cwd / "logs" / f"{stage.name.replace('@', '-')}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "w") as out:
+        code = subprocess.run(
+            argv, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT, preexec_fn=_die_with_parent
+        ).returncode
+    if code != 0:
+        tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:])
+        raise StageError(f"trial stage {stage.name} failed with exit code {code} (log: {log}):\n{tail}")
