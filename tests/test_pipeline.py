@@ -20,6 +20,7 @@ from mlflow.tracking import MlflowClient
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import apply_profile, load_params, stage_names
 from adaptdiffuser.data.schema import read_trajectories
+from adaptdiffuser.deps_trace import ENV_VAR, check, load_traces, missing_message
 from adaptdiffuser.tracking import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
@@ -27,6 +28,7 @@ PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvc
 PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
 MAZE, HOPPER = "maze2d-umaze", "hopper-medium"
 PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
+TRACES = ".dvc/tmp/deps-trace"  # the smoke repro's stage traces (adaptdiffuser.deps_trace), ignored by git and DVC
 STAGES = [
     *(f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in PHASE0_STAGES),
     f"evaluate-coin-phase0@{MAZE}",
@@ -44,8 +46,8 @@ def _env() -> dict[str, str]:
     return env
 
 
-def _run(cmd: list[str], cwd: Path) -> str:
-    out = subprocess.run(cmd, cwd=cwd, env=_env(), capture_output=True, text=True)
+def _run(cmd: list[str], cwd: Path, **env: str) -> str:
+    out = subprocess.run(cmd, cwd=cwd, env=_env() | env, capture_output=True, text=True)
     assert out.returncode == 0, f"{' '.join(cmd)} failed:\n{out.stdout}\n{out.stderr}"
     return out.stdout + out.stderr
 
@@ -67,7 +69,7 @@ def smoke_repo(tmp_path_factory) -> Path:
     _run(["adaptdiffuser", "profile", "smoke"], root)
     _run(["git", "add", "-A"], root)
     _run(["git", "commit", "-qm", "smoke project"], root)
-    _run(["dvc", "repro"], root)
+    _run(["dvc", "repro"], root, **{ENV_VAR: str(root / TRACES)})
     return root
 
 
@@ -123,6 +125,15 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
 
     shown = _run(["dvc", "metrics", "show", "--json"], smoke_repo)
     assert "score_mean" in shown
+
+
+@pytest.mark.e2e
+def test_dvc_yaml_lists_every_module_and_file_each_stage_uses(smoke_repo: Path) -> None:
+    """The repro traced every stage (modules loaded, files read): each traced path is under one of its deps."""
+    traces = load_traces(smoke_repo / TRACES)  # not empty: every stage loaded the CLI and read something
+    assert all("src/adaptdiffuser/cli.py" in trace.modules and trace.reads for trace in traces.values())
+    message = missing_message(check(smoke_repo, smoke_repo / TRACES))  # raises if a stage left no trace
+    assert not message, f"dvc.yaml misses deps that stages use:\n{message}"
 
 
 @pytest.mark.e2e

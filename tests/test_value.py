@@ -7,6 +7,7 @@ import pytest
 import torch
 from pydantic import ValidationError
 
+from adaptdiffuser.config.value import ValueSettings
 from adaptdiffuser.data.normalizer import GaussianNormalizer
 from adaptdiffuser.data.returns import ValueWindowDataset, returns_to_go
 from adaptdiffuser.data.schema import Trajectories, make_metadata
@@ -14,7 +15,7 @@ from adaptdiffuser.data.windows import joint_array
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.models.unet import TemporalUnet
 from adaptdiffuser.models.value import ValueNetwork
-from adaptdiffuser.value_training import ValueSettings, load_value, save_value, train_value, value_loss
+from adaptdiffuser.value_training import load_value, save_value, train_value, value_loss
 
 CPU = torch.device("cpu")
 OBS, ACT = 3, 2

@@ -370,7 +370,14 @@ def check(params: ParamsPath = Path("params.yaml")) -> None:
 
 
 def run_stage(stage: str) -> None:
-    """Entry used by ``pipeline/<stage>.py``: the CLI subcommand ``stage`` with the script's arguments."""
+    """Entry used by ``pipeline/<stage>.py``: the CLI subcommand ``stage`` with the script's arguments.
+
+    With ``ADAPTDIFFUSER_TRACE_DEPS`` set, the modules and files the stage uses are traced (``deps_trace``)."""
+    import os
     import sys
 
+    if os.environ.get("ADAPTDIFFUSER_TRACE_DEPS"):  # imported only then: it is no dependency of the stages
+        from adaptdiffuser.deps_trace import install_from_env
+
+        install_from_env()
     app(args=[stage, *sys.argv[1:]], prog_name=f"pipeline/{stage}.py")

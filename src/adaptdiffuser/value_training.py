@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 from tqdm import tqdm
 
+from adaptdiffuser.config.value import ValueSettings
 from adaptdiffuser.data.returns import ValueWindowDataset
 from adaptdiffuser.diffusion.conditions import apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
@@ -26,20 +26,6 @@ from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.training import LogFn, LossLog
 
 VALUE_FILES = ("value.pt", "config.json")
-
-
-class ValueSettings(BaseModel):
-    """Value training settings (defaults: Diffuser's locomotion value config)."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
-
-    steps: int = Field(200_000, gt=0)
-    batch_size: int = Field(32, gt=0)
-    lr: float = Field(2e-4, gt=0)
-    seed: int = Field(0, ge=0)
-    discount: float = Field(0.997, gt=0, le=1)
-    terminal_penalty: float = -100.0
-    log_every: int = Field(1000, gt=0)
 
 
 def value_loss(
