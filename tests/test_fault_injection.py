@@ -33,6 +33,7 @@ import torch
 import yaml
 from dvc.repo import Repo
 from PIL import Image
+from smoke_project import make_smoke_project
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.data.schema import METADATA_KEY, read_trajectories
@@ -41,7 +42,6 @@ from adaptdiffuser.value_training import load_value
 pytestmark = [pytest.mark.e2e, pytest.mark.filterwarnings("ignore::DeprecationWarning:dvc")]
 
 REPO = Path(__file__).resolve().parents[1]
-PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
 MAZE, HOPPER = "maze2d-umaze", "hopper-medium"
 # Every stage of dvc.yaml, in pipeline order; each is killed in one instance: the first one dvc.yaml resolves,
 # except collect and pretrain, killed on the locomotion task (its behaviour policy; its value function).
@@ -346,20 +346,7 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Project:
     """The project on the shrunk smoke profile in a temporary git + DVC repository; nothing has run yet."""
     root = tmp_path_factory.mktemp("faults") / "project"
     root.mkdir()
-    for name in PROJECT_FILES:
-        src = REPO / name
-        if src.is_dir():
-            shutil.copytree(src, root / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
-        else:
-            shutil.copy2(src, root / name)
-    _sh(["git", "init", "-q"], root)
-    _sh(["git", "config", "user.email", "test@example.com"], root)
-    _sh(["git", "config", "user.name", "test"], root)
-    _sh(["dvc", "init", "-q"], root)
-    _sh(["adaptdiffuser", "profile", "smoke"], root)
-    _shrink(root / "params.yaml")
-    _sh(["git", "add", "-A"], root)
-    _sh(["git", "commit", "-qm", "fault-injection project"], root)
+    make_smoke_project(root, _sh, edit=_shrink)
     return Project(root, _resolved_stages(root))
 
 

@@ -16,6 +16,7 @@ import pytest
 import yaml
 from dvc.repo import Repo
 from mlflow.tracking import MlflowClient
+from smoke_project import make_smoke_project
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import apply_profile, load_params, stage_names
@@ -24,7 +25,6 @@ from adaptdiffuser.deps_trace import ENV_VAR, check, load_traces, missing_messag
 from adaptdiffuser.tracking import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
-PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
 PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
 MAZE, HOPPER = "maze2d-umaze", "hopper-medium"
 PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
@@ -55,20 +55,7 @@ def _run(cmd: list[str], cwd: Path, **env: str) -> str:
 @pytest.fixture(scope="module")
 def smoke_repo(tmp_path_factory) -> Path:
     """A temporary git + DVC repository holding the project on the smoke profile, after one `dvc repro`."""
-    root = tmp_path_factory.mktemp("project")
-    for name in PROJECT_FILES:
-        src = REPO / name
-        if src.is_dir():
-            shutil.copytree(src, root / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
-        else:
-            shutil.copy2(src, root / name)
-    _run(["git", "init", "-q"], root)
-    _run(["git", "config", "user.email", "test@example.com"], root)
-    _run(["git", "config", "user.name", "test"], root)
-    _run(["dvc", "init", "-q"], root)
-    _run(["adaptdiffuser", "profile", "smoke"], root)
-    _run(["git", "add", "-A"], root)
-    _run(["git", "commit", "-qm", "smoke project"], root)
+    root = make_smoke_project(tmp_path_factory.mktemp("project"), _run)
     _run(["dvc", "repro"], root, **{ENV_VAR: str(root / TRACES)})
     return root
 
