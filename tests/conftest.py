@@ -1,15 +1,20 @@
-"""Small shared fixtures: a tiny model configuration and a real expert dataset collected in U-Maze."""
+"""Shared fixtures: a tiny model configuration, a real expert dataset collected in U-Maze, and the smoke project
+after one `dvc repro` (built once per test session)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from smoke_project import TRACES, make_smoke_project, run_tool
 
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import Trajectories, make_metadata
 from adaptdiffuser.data.windows import WindowDataset, joint_array
+from adaptdiffuser.deps_trace import ENV_VAR
 from adaptdiffuser.families.maze2d.expert import collect_expert_stream
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.families.registry import get_family
@@ -67,3 +72,12 @@ def dataset(expert_traj: Trajectories, normalizer: MinMaxNormalizer) -> WindowDa
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="session")
+def smoke_repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A temporary git + DVC repository holding the project on the smoke profile, after one traced `dvc repro`
+    (its stage traces under :data:`smoke_project.TRACES`). Tests that change it restore it, or work on a copy."""
+    root = make_smoke_project(tmp_path_factory.mktemp("project"), run_tool)
+    run_tool(["dvc", "repro"], root, **{ENV_VAR: str(root / TRACES)})
+    return root

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import os
 import shutil
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+#: where the shared smoke repro (the ``smoke_repo`` fixture) writes its stage traces (adaptdiffuser.deps_trace)
+TRACES = ".dvc/tmp/deps-trace"
 PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
 
 
@@ -31,3 +36,21 @@ def make_smoke_project(
     run(["git", "add", "-A"], root)
     run(["git", "commit", "-qm", "smoke project"], root)
     return root
+
+
+def tool_env() -> dict[str, str]:
+    """The environment the command-line tools (dvc, git, adaptdiffuser) run in: this interpreter's scripts first on
+    the PATH, the project's own MLflow store (no inherited ``MLFLOW_TRACKING_URI``), no DVC analytics."""
+    env = dict(os.environ)
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env['PATH']}"
+    env.pop("MLFLOW_TRACKING_URI", None)
+    env["DVC_NO_ANALYTICS"] = "1"
+    return env
+
+
+def run_tool(cmd: list[str], cwd: Path, **env: str) -> str:
+    """Run ``cmd`` in ``cwd`` (extra environment ``env``), fail the test with its output on a non-zero exit, and
+    return its stdout and stderr."""
+    out = subprocess.run(cmd, cwd=cwd, env=tool_env() | env, capture_output=True, text=True)
+    assert out.returncode == 0, f"{' '.join(cmd)} failed:\n{out.stdout}\n{out.stderr}"
+    return out.stdout + out.stderr

@@ -471,6 +471,7 @@ def test_describe_lists_the_task_and_the_stages_dvc_runs() -> None:
     assert stages[-2:] == ["summarize", "report"] and len(stages) == 5 + 7 * 2 + 2
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
     items = {"${tasks}": params.tasks, "${coin_tasks}": params.coin_tasks, "${phases}": params.phase_names}
+    items |= {"${collect_tasks}": params.collect_tasks, "${imports}": list(params.imports)}
     expanded = {f"{name}@{k}" for name, spec in dvc.items() if "foreach" in spec for k in items[spec["foreach"]]} | {
         name for name, spec in dvc.items() if "foreach" not in spec
     }
@@ -637,6 +638,7 @@ def test_task_override_is_merged_over_the_top_level_section(tmp_path: Path) -> N
     overlay = {
         "tasks": [UMAZE, "maze2d-medium"],
         "coin_tasks": [UMAZE, "maze2d-medium"],
+        "collect_tasks": [UMAZE, "maze2d-medium"],
         "task": {"maze2d-medium": medium | {"model": {"dim": 32}, "planner": {"sampler": "ddpm"}}},
     }
     params = load_params(write_params(tmp_path, overlay))
@@ -663,6 +665,7 @@ def test_task_override_is_merged_over_the_top_level_section(tmp_path: Path) -> N
 def test_paper_rule_is_checked_on_the_evolved_task_only(tmp_path: Path) -> None:
     custom = {"family": "maze2d", "env": {"layout": ["######", "#..#G#", "#....#", "#.##.#", "######"]}}
     overlay = {"tasks": [UMAZE, "maze2d-custom"], "coin_tasks": [UMAZE, "maze2d-custom"]}
+    overlay["collect_tasks"] = overlay["tasks"]
     overlay["task"] = {"maze2d-custom": custom}
     params = load_params(write_params(tmp_path, overlay))  # evolve: maze2d-umaze, rule paper
     assert (

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -16,19 +15,20 @@ import pytest
 import yaml
 from dvc.repo import Repo
 from mlflow.tracking import MlflowClient
-from smoke_project import make_smoke_project
+from smoke_project import TRACES
+from smoke_project import run_tool as _run
+from smoke_project import tool_env as _env
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import apply_profile, load_params, stage_names
 from adaptdiffuser.data.schema import read_trajectories
-from adaptdiffuser.deps_trace import ENV_VAR, check, load_traces, missing_message
+from adaptdiffuser.deps_trace import check, load_traces, missing_message
 from adaptdiffuser.tracking import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
 PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
 MAZE, HOPPER = "maze2d-umaze", "hopper-medium"
 PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
-TRACES = ".dvc/tmp/deps-trace"  # the smoke repro's stage traces (adaptdiffuser.deps_trace), ignored by git and DVC
 STAGES = [
     *(f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in PHASE0_STAGES),
     f"evaluate-coin-phase0@{MAZE}",
@@ -36,28 +36,6 @@ STAGES = [
     "summarize",
     "report",
 ]
-
-
-def _env() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env['PATH']}"
-    env.pop("MLFLOW_TRACKING_URI", None)
-    env["DVC_NO_ANALYTICS"] = "1"
-    return env
-
-
-def _run(cmd: list[str], cwd: Path, **env: str) -> str:
-    out = subprocess.run(cmd, cwd=cwd, env=_env() | env, capture_output=True, text=True)
-    assert out.returncode == 0, f"{' '.join(cmd)} failed:\n{out.stdout}\n{out.stderr}"
-    return out.stdout + out.stderr
-
-
-@pytest.fixture(scope="module")
-def smoke_repo(tmp_path_factory) -> Path:
-    """A temporary git + DVC repository holding the project on the smoke profile, after one `dvc repro`."""
-    root = make_smoke_project(tmp_path_factory.mktemp("project"), _run)
-    _run(["dvc", "repro"], root, **{ENV_VAR: str(root / TRACES)})
-    return root
 
 
 @pytest.mark.e2e
@@ -153,7 +131,12 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     experiment = client.get_experiment_by_name(MAZE)
     assert experiment is not None
     assert experiment.artifact_location == (smoke_repo / f"mlartifacts/{MAZE}").resolve().as_uri()
+    assert experiment.tags["mlflow.experimentKind"] == "custom_model_development"  # the UI opens on the runs
     runs = client.search_runs([experiment.experiment_id])
+    (parent,) = [run for run in runs if run.data.tags["stage"] == "pipeline"]  # one `dvc repro`, one pipeline run
+    runs = [run for run in runs if run is not parent]
+    assert all(run.data.tags["mlflow.parentRunId"] == parent.info.run_id for run in runs)
+    assert parent.info.status == "FINISHED" and parent.data.tags["git_commit"] == runs[0].data.tags["git_commit"]
     by_stage = {(run.data.tags["stage"], run.data.tags["phase"]): run for run in runs}
     assert len(by_stage) == len(runs)
     assert set(by_stage) == {
@@ -162,10 +145,11 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
         ("pretrain", "0"),
         ("evaluate", "0"),
         ("evaluate-coin", "0"),
+        ("summarize", "all"),
     } | {(stage, str(k)) for k in (1, 2) for stage in PHASE_STAGES}
     for run in runs:
         assert run.info.status == "FINISHED" and len(run.data.tags["git_commit"]) == 40
-        if run.data.tags["stage"] not in ("collect", "reference"):  # one run per training seed
+        if run.data.tags["stage"] not in ("collect", "reference", "summarize"):  # one run per training seed
             assert run.data.tags["seed"] == "0" and run.info.run_name.endswith("-seed0")
     pretrain = by_stage["pretrain", "0"]
     assert pretrain.data.params["pretrain.steps"] == "20"
@@ -195,10 +179,32 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     assert [m.step for m in client.get_metric_history(control.info.run_id, "train_loss")] == [5]
     assert {"gain_mean", "gain_stderr", "score_mean"} <= set(by_stage["evaluate-control", "2"].data.metrics)
     assert by_stage["discriminate", "1"].data.metrics["discriminator.generated"] == 16
+    # what each training run trained on, as MLflow dataset inputs (name, digest and context)
+    contexts = {
+        d.dataset.name: {t.key: t.value for t in d.tags}["mlflow.data.context"] for d in finetune.inputs.dataset_inputs
+    }
+    assert contexts == {
+        f"data/{MAZE}/dataset.parquet": "training",
+        f"data/{MAZE}/phase1/selected/seed0.parquet": "synthetic-phase1",
+        f"data/{MAZE}/phase2/selected/seed0.parquet": "synthetic-phase2",
+    }
+    assert [d.dataset.name for d in pretrain.inputs.dataset_inputs] == [f"data/{MAZE}/dataset.parquet"]
+    assert [d.dataset.name for d in control.inputs.dataset_inputs] == [f"data/{MAZE}/dataset.parquet"]
+    # the evolution curve (step = phase) and the registered models, `best` on the phase with the highest score
+    summary = json.loads((smoke_repo / "metrics/summary.json").read_text())[MAZE]
+    curve = by_stage["summarize", "all"]
+    scores = [m.value for m in client.get_metric_history(curve.info.run_id, "score")]
+    assert scores == [summary[f"phase_{k}"]["score_mean"] for k in (0, 1, 2)]
+    assert [m.step for m in client.get_metric_history(curve.info.run_id, "gain")] == [1, 2]
+    model = client.get_registered_model(f"adaptdiffuser-{MAZE}")
+    labels = {"phase0", "phase1", "phase2", "phase1-control", "phase2-control"}
+    assert set(model.aliases) == labels | {f"{label}-seed0" for label in labels} | {"best"}
+    best = client.get_model_version_by_alias(model.name, "best")
+    assert best.tags["label"] == f"phase{curve.data.tags['best_phase']}" == f"phase{scores.index(max(scores))}"
     # the locomotion task has its own experiment, with the value function's training beside pretraining
     hopper = client.get_experiment_by_name(HOPPER)
     stages = {run.data.tags["stage"] for run in client.search_runs([hopper.experiment_id])}
-    assert stages == {"collect", "reference", "pretrain", "value", "evaluate"}
+    assert stages == {"pipeline", "collect", "reference", "pretrain", "value", "evaluate", "summarize"}
 
 
 @pytest.mark.e2e
@@ -319,7 +325,8 @@ def test_failed_stage_marks_mlflow_run_failed(tmp_path: Path, monkeypatch: pytes
         raise RuntimeError("boom")
     client = MlflowClient(tracking_uri=uri)
     experiment = client.get_experiment_by_name("maze2d-test")
-    (run,) = client.search_runs([experiment.experiment_id])
+    (run,) = client.search_runs([experiment.experiment_id], "tags.stage = 'pretrain'")
     assert run.info.status == "FAILED"
+    assert client.get_run(run.data.tags["mlflow.parentRunId"]).info.status == "FAILED"  # the pipeline run too
     assert run.data.params == {"a.b": "1"} and run.data.tags["stage"] == "pretrain"
     mlflow.set_tracking_uri(None)

@@ -66,6 +66,10 @@ def _copy_pipeline(root: Path) -> None:
 
 
 def _sweep(root: Path, *args: str) -> subprocess.CompletedProcess:
+    """``adaptdiffuser sweep`` in ``root`` (not a DVC repository: the best trial is not recorded as an experiment
+    unless ``--dvc-exp`` says so; tests/test_sharing.py records one)."""
+    if "--dvc-exp" not in args:
+        args = (*args, "--dvc-exp", "none")
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env['PATH']}"
     return subprocess.run(
@@ -115,6 +119,19 @@ def test_two_workers_share_a_journal_study_and_mlflow_nests_the_trials(project: 
     assert applied.phase(1).discriminate.max_error == pytest.approx(
         study.best_params["evolution.discriminate.max_error"]
     )
+
+
+@pytest.mark.parametrize(
+    ("mode", "message"), [("run", "not a DVC repository"), ("queue", "--dvc-exp none"), ("later", "one of run")]
+)
+def test_recording_the_best_trial_is_checked_before_any_trial(project: Path, mode: str, message: str) -> None:
+    """The project is not a DVC repository: asking for the best trial as a DVC experiment fails before a trial."""
+    raw = yaml.safe_load((project / "params.yaml").read_text())
+    raw["sweep"]["study"] = f"dvcexp-{mode}"
+    (project / "dvcexp.yaml").write_text(yaml.safe_dump(raw))
+    out = _sweep(project, "--trials", "1", "--dvc-exp", mode, "--params", "dvcexp.yaml")
+    assert out.returncode == 2 and message in out.stderr, out.stdout + out.stderr
+    assert not (project / "sweeps" / f"dvcexp-{mode}.journal").exists()
 
 
 @pytest.mark.parametrize(

@@ -36,7 +36,7 @@ TASK = "maze2d-umaze"
 
 def _params(root: Path, seeds: list[int]) -> Params:
     raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", root / "params.yaml").read_text())
-    raw.update(tasks=[TASK], coin_tasks=[TASK], evolve=TASK, seeds=seeds)
+    raw.update(tasks=[TASK], collect_tasks=[TASK], coin_tasks=[TASK], evolve=TASK, seeds=seeds)
     raw["phases"] = {"phase1": {"previous": 0}}
     return params_from_dict(raw)
 

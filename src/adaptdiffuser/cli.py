@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import typer
 
@@ -40,7 +40,7 @@ def _guarded(fn: Callable[[], T]) -> T:
     """Run a stage body; turn known input errors into a one-line message and exit code 2."""
     try:
         return fn()
-    except (ConfigError, SchemaError, FileNotFoundError, StageError) as err:
+    except (ConfigError, SchemaError, FileNotFoundError, FileExistsError, StageError) as err:
         typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=2) from err
 
@@ -78,6 +78,37 @@ def collect(params: ParamsPath = Path("params.yaml"), task: TaskOption = None, p
     p = _params(params)
     out = _guarded(lambda: run_collect(p, _task(p, task), Path.cwd(), progress=progress))
     typer.echo(f"wrote {out}")
+
+
+@app.command("import-data")
+def import_data(params: ParamsPath = Path("params.yaml"), task: TaskOption = None, progress: Progress = True) -> None:
+    """Import a task's dataset from imports.<task> (a D4RL HDF5 file or a Minari dataset) into
+    data/<task>/dataset.parquet, instead of the collect stage."""
+    from adaptdiffuser.stages.import_data import run_import
+
+    p = _params(params)
+    out = _guarded(lambda: run_import(p, _task(p, task), Path.cwd(), progress=progress))
+    typer.echo(f"wrote {out}")
+
+
+@app.command("export-minari")
+def export_minari(
+    data: Annotated[Path, typer.Argument(help="a trajectory file: data/<task>/dataset.parquet or a selected file")],
+    dataset_id: Annotated[str, typer.Option("--dataset-id", help="Minari id, namespace/name-v0")],
+    task: TaskOption = None,
+    path: Annotated[
+        Path | None, typer.Option("--path", help="Minari store folder (default: $MINARI_DATASETS_PATH or ~/.minari)")
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", help="replace an existing dataset of that id")] = False,
+    params: ParamsPath = Path("params.yaml"),
+) -> None:
+    """Write one of our trajectory files as a Minari dataset (minari.load_dataset opens it), with the task's env
+    spec."""
+    from adaptdiffuser.stages.export import run_export_minari
+
+    p = _params(params)
+    out = _guarded(lambda: run_export_minari(p, _task(p, task), data, dataset_id, path, force))
+    typer.echo(f"wrote Minari dataset {dataset_id} at {out}")
 
 
 @app.command()
@@ -290,19 +321,37 @@ def sweep(
         typer.Option(help="Optuna storage: a journal file path (default sweeps/<study>.journal) or postgresql://..."),
     ] = None,
     apply: Annotated[bool, typer.Option("--apply", help="write the best values into the params file")] = False,
+    dvc_exp: Annotated[
+        str,
+        typer.Option(
+            help="record the best trial as the DVC experiment <study>-best-trial<n>: run (now, in a temporary "
+            "copy, on the pipeline's evaluation episodes), queue (for `dvc queue start`) or none"
+        ),
+    ] = "run",
     device: Device = "auto",
 ) -> None:
     """Optuna sweep over the params in sweep.space: each trial reruns the evolution phases on the cached phase 0."""
+    from adaptdiffuser.dvc_experiments import EXPERIMENT_MODES
     from adaptdiffuser.sweep import apply_best, run_sweep
 
     _params(params)
-    result = _guarded(lambda: run_sweep(Path.cwd(), params, trials, workers, storage, device))
+    if dvc_exp not in EXPERIMENT_MODES:
+        _guarded(
+            lambda: _raise(ConfigError(f"--dvc-exp: expected one of {', '.join(EXPERIMENT_MODES)}, got {dvc_exp!r}"))
+        )
+    mode: Any = dvc_exp  # one of EXPERIMENT_MODES, checked above
+    result = _guarded(lambda: run_sweep(Path.cwd(), params, trials, workers, storage, device, mode))
     counts: dict[str, int] = {}
     for trial in result.study.trials:
         counts[trial.state.name] = counts.get(trial.state.name, 0) + 1
     typer.echo(f"study {result.study.study_name}: {counts}")
     typer.echo(f"best objective {result.best_value:.2f} with {result.best_values}")
-    typer.echo(f"reproduce it as a DVC experiment:\n  {result.command}")
+    if result.dvc_experiment is None:
+        typer.echo(f"reproduce it as a DVC experiment:\n  {result.command}")
+    elif dvc_exp == "queue":
+        typer.echo(f"queued as DVC experiment {result.dvc_experiment}: `dvc queue start`, then `dvc exp show`")
+    else:
+        typer.echo(f"recorded as DVC experiment {result.dvc_experiment} (evaluation episodes): `dvc exp show`")
     if apply:
         _guarded(lambda: apply_best(params, result.best_values))
         typer.echo(f"wrote the best values into {params}")
@@ -321,19 +370,27 @@ def profile(
 
 @app.command("set")
 def set_value(
-    assignment: Annotated[str, typer.Argument(help="key=value, e.g. evolve=hopper-medium or seeds=[0,1,2]")],
+    assignments: Annotated[
+        list[str], typer.Argument(help="key=value, e.g. evolve=hopper-medium or seeds=[0,1,2]; several at once")
+    ],
     params: ParamsPath = Path("params.yaml"),
 ) -> None:
-    """Set one params key in place, keeping the file's comments; the result is validated before it is written."""
+    """Set params keys in place, keeping the file's comments; the result (all keys set) is validated before it is
+    written."""
     import yaml
 
     from adaptdiffuser.sweep import apply_best
 
-    key, sep, value = assignment.partition("=")
-    if not sep or not key.strip():
-        _guarded(lambda: _raise(ConfigError(f"set: expected key=value, got {assignment!r}")))
-    _guarded(lambda: apply_best(params, {key.strip(): yaml.safe_load(value)}))
-    typer.echo(f"{params}: {key.strip()} = {value}")
+    values = {}
+    for assignment in assignments:
+        key, sep, value = assignment.partition("=")
+        if not sep or not key.strip():
+            _guarded(lambda assignment=assignment: _raise(ConfigError(f"set: expected key=value, got {assignment!r}")))
+        values[key.strip()] = yaml.safe_load(value)
+    _guarded(lambda: apply_best(params, values))
+    for assignment in assignments:
+        key, _, value = assignment.partition("=")
+        typer.echo(f"{params}: {key.strip()} = {value}")
 
 
 @app.command()

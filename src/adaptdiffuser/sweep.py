@@ -37,6 +37,7 @@ import optuna
 import yaml
 
 from adaptdiffuser.config import SearchDimension, SweepParams, params_from_dict
+from adaptdiffuser.dvc_experiments import ExperimentMode, check_experiment_repo, record_experiment, set_param_args
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.sweep_trials import check_sweep_plan, run_trial, swept_task, trial_raw
 from adaptdiffuser.tracking import PARENT_RUN_ENV, loggable, redact_text
@@ -53,11 +54,8 @@ def suggest(trial: optuna.Trial, dim: SearchDimension) -> Any:
 
 def reproduce_command(values: dict[str, Any]) -> str:
     """The ``dvc exp run`` command that reruns the pipeline with a trial's values."""
-    return "dvc exp run " + " ".join(f"-S '{key}={_yaml_scalar(value)}'" for key, value in values.items())
-
-
-def _yaml_scalar(value: Any) -> str:
-    return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("\n...").strip()
+    args = set_param_args(values)
+    return "dvc exp run " + " ".join(f"-S '{assignment}'" for assignment in args[1::2])
 
 
 def make_storage(spec: str | None, root: Path, study: str, heartbeat_s: int) -> optuna.storages.BaseStorage:
@@ -200,6 +198,7 @@ class SweepResult:
     best_value: float
     command: str
     parent_run_id: str
+    dvc_experiment: str | None = None  # the DVC experiment recording the best trial, when asked for
 
 
 def run_sweep(
@@ -209,9 +208,14 @@ def run_sweep(
     workers: int | None = None,
     storage: str | None = None,
     device: str = "auto",
+    dvc_exp: ExperimentMode = "none",
 ) -> SweepResult:
     """Create (or resume) the study named in ``sweep.study`` and run ``trials`` trials on ``workers`` worker
-    processes; log the sweep to MLflow (parent run + one child per trial) and return the best trial."""
+    processes; log the sweep to MLflow (parent run + one child per trial) and return the best trial.
+
+    ``dvc_exp`` ``run`` or ``queue`` also records the best trial's values as the DVC experiment
+    ``<study>-best-trial<n>`` (see :mod:`adaptdiffuser.dvc_experiments`): reproduced with the pipeline's own
+    evaluation episodes, which no trial saw, so its score is the sweep's held-out result."""
     from mlflow.tracking import MlflowClient
 
     from adaptdiffuser.tracking import ensure_experiment, tracking_uri
@@ -228,6 +232,8 @@ def run_sweep(
         raise StageError("the sweep reruns the evolution phases: declare 'phases'")
     task = swept_task(params)
     check_sweep_plan(root, raw)  # refuses keys that change a reused stage, and missing inputs, before any trial
+    if dvc_exp != "none":
+        check_experiment_repo(root)
     uri = tracking_uri(root)
     client = MlflowClient(uri)
     experiment_id = ensure_experiment(task, root)
@@ -265,8 +271,19 @@ def run_sweep(
     for key, value in loggable({f"best.{key}": value for key, value in best.params.items()}).items():
         client.log_param(parent_id, key, value)
     _log_study_plots(study, client, parent_id, root / "sweeps" / sweep.study)
+    experiment = None
+    if dvc_exp != "none":
+        experiment = f"{sweep.study}-best-trial{best.number}"
+        values = best.params | ({"evolve": task} if task != params.evolve else {})
+        note = f"sweep {sweep.study}: trial {best.number}, objective {best.value:.4g} on the sweep's own episodes"
+        try:
+            record_experiment(root, experiment, values, dvc_exp, note)
+        except StageError:
+            client.set_terminated(parent_id, "FAILED")
+            raise
+        client.set_tag(parent_id, "dvc_experiment", experiment)
     client.set_terminated(parent_id, "FINISHED")
-    return SweepResult(study, dict(best.params), float(best.value), command, parent_id)
+    return SweepResult(study, dict(best.params), float(best.value), command, parent_id, experiment)
 
 
 def start_parent_run(

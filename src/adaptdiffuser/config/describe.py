@@ -10,7 +10,8 @@ def stage_names(params: Params) -> list[str]:
     """The pipeline's stages in order, as ``dvc.yaml`` names them (``pretrain@hopper-medium``, ``generate@phase1``)."""
     names = []
     for task in params.tasks:
-        names += [f"collect@{task}", f"reference@{task}", f"pretrain@{task}"]
+        data = f"import-data@{task}" if task in params.imports else f"collect@{task}"
+        names += [data, f"reference@{task}", f"pretrain@{task}"]
         names.append(f"evaluate-phase0@{task}")
         if task in params.coin_tasks:
             names.append(f"evaluate-coin-phase0@{task}")
@@ -37,8 +38,10 @@ def describe(params: Params) -> list[str]:
     ]
     for name in p.tasks:
         t = p.resolve(name)
+        src = p.imports.get(name)
+        data = f"import-data@{name}: {src.format} data from {src.path}" if src else f"collect@{name}: {_data(t)}"
         lines += [
-            f"  collect@{name}: {_data(t)}",
+            f"  {data}",
             f"  reference@{name}: the score's 0 and 100, {t.evaluate.episodes} episodes",
             f"  pretrain@{name}: {t.pretrain.steps} steps, batch {t.pretrain.batch_size} x {t.pretrain.grad_accum}, "
             f"lr {t.pretrain.lr:g}",

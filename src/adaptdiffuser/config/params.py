@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import field
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 from pydantic.dataclasses import dataclass
 
 from adaptdiffuser.config.errors import ConfigError, show
-from adaptdiffuser.config.fields import Float, Seed, Str
+from adaptdiffuser.config.fields import Float, Seed, Str, one_of
 from adaptdiffuser.config.phases import PhaseParams, build_phases, check_chain
 from adaptdiffuser.config.sections import (
     SECTION,
@@ -26,6 +26,18 @@ from adaptdiffuser.config.sweep import SweepParams
 from adaptdiffuser.config.tasks import GENERIC_SECTIONS, TaskParams, build_task, check_task
 
 DEFAULT_TASK = "maze2d-umaze"
+
+#: formats of a task's external data (``imports``): a D4RL HDF5 file, or a Minari dataset (by folder or id)
+IMPORT_FORMATS = ("d4rl", "minari")
+
+
+@dataclass(frozen=True, config=SECTION)
+class ImportParams:
+    """Where an imported task's expert data comes from, instead of its collect stage. ``path``: the D4RL ``.hdf5``
+    file, or the Minari dataset's folder (the one holding ``data/``) or its id in the local Minari store."""
+
+    format: Annotated[Str, one_of(*IMPORT_FORMATS)]
+    path: Str
 
 
 def _default_tasks() -> dict[str, Any]:
@@ -43,6 +55,9 @@ class Params:
     task: dict[str, Any] = Field(default_factory=_default_tasks, validate_default=True)
     tasks: tuple[Str, ...] = (DEFAULT_TASK,)  # the tasks `dvc repro` runs: collect, reference, pretrain, evaluate
     coin_tasks: tuple[Str, ...] = (DEFAULT_TASK,)  # those with the unseen gold-coin evaluation
+    # the tasks of `tasks` whose data the collect stage makes (None: every task that is not imported)
+    collect_tasks: tuple[Str, ...] | None = None
+    imports: dict[Str, ImportParams] = field(default_factory=dict)  # task -> its external data (the import stage)
     evolve: Str | None = DEFAULT_TASK  # the task the evolution phases run on; null = phase 0 only
     evolution: EvolutionParams = field(default_factory=EvolutionParams)
     alpha: Float = 0.0
@@ -83,6 +98,11 @@ class Params:
     def _empty_list(cls, value: Any) -> Any:
         return () if value is None else value
 
+    @field_validator("imports", mode="before")
+    @classmethod
+    def _empty_imports(cls, value: Any) -> Any:
+        return {} if value is None else value
+
     @field_validator("seeds")
     @classmethod
     def _distinct_seeds(cls, value: tuple[int, ...]) -> tuple[int, ...]:
@@ -94,6 +114,8 @@ class Params:
 
     @model_validator(mode="after")
     def _cross_checks(self) -> Params:
+        if self.collect_tasks is None:  # not written: every task of `tasks` that is not imported
+            object.__setattr__(self, "collect_tasks", tuple(t for t in self.tasks if t not in self.imports))
         check_cross_fields(self)
         return self
 
@@ -182,6 +204,33 @@ def check_cross_fields(p: Params) -> None:
                     f"phases.{phase.name}.generate.sampler_steps: must be in 1..diffusion.n_steps={n_steps} of "
                     f"{p.evolve}, got {phase.generate.sampler_steps}"
                 )
+    check_data_sources(p)
+
+
+def check_data_sources(p: Params) -> None:
+    """Every task of ``tasks`` gets its data from exactly one place: the collect stage (``collect_tasks``) or an
+    import (a key of ``imports``)."""
+    collect = p.collect_tasks or ()
+    if len(set(collect)) != len(collect):
+        raise ConfigError(f"collect_tasks: lists a task twice: {list(collect)}")
+    for name in collect:
+        if name not in p.tasks:
+            raise ConfigError(f"collect_tasks: {name!r} is not one of tasks {list(p.tasks)}; remove it")
+    for name in p.imports:
+        if name not in p.tasks:
+            raise ConfigError(
+                f"imports.{name}: {name!r} is not one of tasks {list(p.tasks)}; add it to tasks or remove its entry"
+            )
+        if name in collect:
+            raise ConfigError(
+                f"collect_tasks: {name!r} is imported (imports.{name}); remove it from collect_tasks or drop the import"
+            )
+    for name in p.tasks:
+        if name not in collect and name not in p.imports:
+            raise ConfigError(
+                f"collect_tasks: {name!r} of tasks has no data source; add it to collect_tasks or give it an entry "
+                "under imports"
+            )
 
 
 def check_task_lists(p: Params) -> None:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
+    from adaptdiffuser.data.d4rl import ExternalData
     from adaptdiffuser.data.schema import Trajectories
     from adaptdiffuser.evaluation import Controller, EpisodeBatchResult
     from adaptdiffuser.evolution.discriminator import Judgement
@@ -121,6 +122,23 @@ class Family(ABC):
     def describe(self, task: Any) -> dict[str, Any]:
         """Facts about the task worth logging next to its runs (env id, dataset kind...)."""
         return {}
+
+    # -- external data (the import stage and the Minari export) ------------------------------------------------------
+
+    def from_external(self, task: Any, raw: ExternalData) -> Trajectories:
+        """The task's dataset (with file metadata) from external data (a D4RL file or a Minari dataset, in their own
+        coordinates); :class:`~adaptdiffuser.data.d4rl.DataImportError` naming the source, the field, the expected
+        and the found dimension when the data does not fit the task's environment."""
+        raise NotImplementedError(f"family {self.name!r} cannot import external data")
+
+    def export_spec(self, task: Any) -> tuple[Any, Any, Any]:
+        """``(env_spec, observation_space, action_space)`` for a Minari dataset of this task's data: the gymnasium
+        ``EnvSpec`` of its environment (None when it has none) and the spaces of our observation and action rows."""
+        import gymnasium as gym
+
+        sim = self.make_simulator(task)
+        box = gym.spaces.Box
+        return None, box(-np.inf, np.inf, (sim.obs_dim,), np.float32), box(-np.inf, np.inf, (sim.act_dim,), np.float32)
 
     # -- evolution (families whose tasks evolve) --------------------------------------------------------------------
 

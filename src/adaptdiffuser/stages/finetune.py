@@ -26,7 +26,7 @@ from adaptdiffuser.stages.common import (
     selected_path,
 )
 from adaptdiffuser.stages.pretrain import expert_training_data
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.tracking import log_dataset, log_model, stage_run
 from adaptdiffuser.training import carried_optimizer, fingerprint, train
 
 
@@ -94,6 +94,9 @@ def finetune_seed(
     }
     stage = "control" if control else "finetune"
     with stage_run(task.name, stage, phase, logged, root, seed=seed):
+        log_dataset(root / expert_info["path"], expert_info["sha256"], "training", expert_info["path"])
+        for name, info in synthetic_info.items():
+            log_dataset(root / info["path"], info["sha256"], f"synthetic-{name}", info["path"])
         mlflow.log_metrics(
             {f"windows.{name}": len(p) for name, p in zip(["expert", *synthetic_info], parts, strict=True)}
         )
@@ -126,5 +129,8 @@ def finetune_seed(
                 shutil.copytree(root / source / "value", tmp, dirs_exist_ok=True)
         save_loss_curve(history, out / "train_loss.png")
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")
+        files = [out / "config.json", out / "normalizer.json"]
+        label, primary = phase_name(phase, control), seed == params.seeds[0]
+        log_model(bundle.ema, files, task.name, label, seed, primary, {"stage": stage, "previous": cfg.previous})
         resume.unlink(missing_ok=True)
     return out

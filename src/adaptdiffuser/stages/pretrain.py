@@ -18,7 +18,7 @@ from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.common import dataset_path, file_digest, model_dir, phase_models_dir, seed_name
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.tracking import log_dataset, log_model, stage_run
 from adaptdiffuser.training import fingerprint, train
 
 
@@ -63,6 +63,7 @@ def pretrain_seed(
         "seed": seed,
     }
     with stage_run(task.name, "pretrain", 0, logged, root, seed=seed):
+        log_dataset(root / expert["path"], expert["sha256"], "training", expert["path"])
         torch.manual_seed(train_cfg.seed)
         normalizer = fit_normalizer(family.normalizer_kind, joint_array(traj))
         meta = traj.metadata
@@ -105,6 +106,8 @@ def pretrain_seed(
         curve = out / "train_loss.png"
         save_loss_curve(history, curve)
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")  # weights, config and the loss curve
+        files = [out / "config.json", out / "normalizer.json"]
+        log_model(bundle.ema, files, task.name, "phase0", seed, seed == params.seeds[0], {"stage": "pretrain"})
         resume.unlink(missing_ok=True)
     if family.uses_value_function:
         from adaptdiffuser.stages.value import run_value

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import mlflow
+
 from adaptdiffuser.config import Params
 from adaptdiffuser.io import read_json, write_json
 from adaptdiffuser.stages.common import (
@@ -13,6 +15,7 @@ from adaptdiffuser.stages.common import (
     phase_metrics_path,
     reference_path,
 )
+from adaptdiffuser.tracking import set_best_alias, stage_run
 
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept")
 GAIN_KEYS = ("gain_mean", "gain_stderr")
@@ -77,4 +80,22 @@ def run_summarize(params: Params, root: Path) -> dict:
             entry[f"phase_{k}"] = phase
         summary[task] = entry
     write_json(root / SUMMARY, summary)
+    for task, entry in summary.items():
+        log_evolution(task, entry, root)
     return summary
+
+
+def log_evolution(task: str, entry: dict, root: Path) -> None:
+    """One MLflow run per task (``summarize``, in the pipeline's parent run) with the evolution curve as metrics at
+    step k = phase: ``score`` (and ``score_stderr``), and for evolution phases ``control`` and ``gain``; the
+    registered model's alias ``best`` moves to the phase with the highest score (tag ``best_phase``)."""
+    phases = {int(key.removeprefix("phase_")): phase for key, phase in entry.items() if key.startswith("phase_")}
+    with stage_run(task, "summarize", None, {"phases": ",".join(map(str, sorted(phases)))}, root):
+        for k, phase in sorted(phases.items()):
+            mlflow.log_metric("score", phase["score_mean"], step=k)
+            mlflow.log_metric("score_stderr", phase["score_stderr"], step=k)
+            if "control" in phase:
+                mlflow.log_metric("control", phase["control"]["score_mean"], step=k)
+                mlflow.log_metric("gain", phase["gain_mean"], step=k)
+        best = max(phases, key=lambda k: phases[k]["score_mean"])
+        mlflow.set_tags({"best_phase": str(best), "best_model_version": str(set_best_alias(task, best))})

@@ -49,6 +49,7 @@ class LocomotionFamily(Family):
         """D4RL's random and expert returns (the score's 0 and 100), and beside them, on the evaluation seeds and
         episode length: our uniform random policy, our medium behaviour policy, and the dataset's episodes."""
         from adaptdiffuser.families.locomotion.behaviour import (
+            SUMMARY_FILE,
             evaluate_policy_returns,
             load_behaviour_policy,
             random_policy,
@@ -59,7 +60,11 @@ class LocomotionFamily(Family):
         ev, steps = task.evaluate, task.settings.episode_steps
         sim = self.make_simulator(task)
         ref: dict[str, Any] = {"r_min": r_min, "r_max": r_max, "n_episodes": ev.episodes, "source": "d4rl"}
-        policies = {"random": random_policy(sim, ev.seed), "behaviour": load_behaviour_policy(files.collect)}
+        policies = {"random": random_policy(sim, ev.seed)}
+        if (files.collect / SUMMARY_FILE).exists():
+            policies["behaviour"] = load_behaviour_policy(files.collect)
+        else:  # imported data (the import stage): no behaviour policy was trained
+            ref["behaviour"] = "none: the task's data was imported, so there is no behaviour policy to score"
         for who, policy in policies.items():
             returns = evaluate_policy_returns(policy, sim, ev.episodes, ev.seed, steps)
             scores = normalized_score(returns, env_id)
@@ -104,6 +109,17 @@ class LocomotionFamily(Family):
         from adaptdiffuser.families.locomotion.evolution import selected_segments
 
         return selected_segments(self.make_simulator(task), task, judgement, generator)
+
+    def from_external(self, task: TaskParams, raw: Any) -> Trajectories:
+        """D4RL's or Minari's MuJoCo data of the task's robot (``-v5`` dimensions)."""
+        from adaptdiffuser.families.locomotion.external import locomotion_trajectories
+
+        return locomotion_trajectories(task, self.make_simulator(task), raw)
+
+    def export_spec(self, task: TaskParams) -> tuple[Any, Any, Any]:
+        from adaptdiffuser.families.locomotion.external import locomotion_export_spec
+
+        return locomotion_export_spec(self.make_simulator(task))
 
     def episode_metrics(self, result: EpisodeBatchResult) -> dict[str, float]:
         return {

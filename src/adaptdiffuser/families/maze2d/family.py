@@ -159,5 +159,16 @@ class Maze2DFamily(Family):
     def describe(self, task: TaskParams) -> dict[str, Any]:
         return {"maze": task.settings.maze_name, "episode_steps": task.settings.episode_steps}
 
+    def from_external(self, task: TaskParams, raw: Any) -> Trajectories:
+        """D4RL's Maze2D files (converted from D4RL's coordinates) or Minari's PointMaze datasets."""
+        from adaptdiffuser.families.maze2d.external import maze_trajectories
+
+        return maze_trajectories(task, self.make_simulator(task), raw)
+
+    def export_spec(self, task: TaskParams) -> tuple[Any, Any, Any]:
+        from adaptdiffuser.families.maze2d.external import maze_export_spec
+
+        return maze_export_spec(task, self.make_simulator(task))
+
 
 FAMILY = Maze2DFamily

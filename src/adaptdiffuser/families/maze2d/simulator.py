@@ -20,6 +20,24 @@ from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, Layout, 
 Cell = tuple[int, int]
 
 
+def silence_adroit_notice() -> None:
+    """Drop gymnasium-robotics' notice about its Adroit environments' rewards (this project never uses them) before
+    it is first imported.
+
+    gymnasium_robotics prints, with ``print(..., file=sys.stderr)`` on import (not through ``warnings`` or
+    ``logging``, so no filter catches it), the message ``farama_notifications`` holds for its installed version.
+    This removes exactly that message (the one naming ``AdroitHand``) from the table; any other notice still
+    prints."""
+    try:
+        from farama_notifications import notifications
+    except ImportError:
+        return
+    robotics = notifications.get("gymnasium_robotics", {})
+    for version, message in list(robotics.items()):
+        if "AdroitHand" in str(message):
+            del robotics[version]
+
+
 def resolve_layout(maze: str, layout: list[str] | None = None) -> Layout:
     """The built-in maze named ``maze``, or a custom ``layout`` (list of strings) when one is given."""
     if layout is not None:
@@ -130,6 +148,7 @@ class Maze2D(PlanningEnv):
         tracking_p_gain: float = 1.0,
         tracking_d_gain: float = 1.0,
     ) -> None:
+        silence_adroit_notice()
         from gymnasium_robotics.envs.maze.point_maze import PointMazeEnv
 
         self.layout = layout

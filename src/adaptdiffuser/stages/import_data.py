@@ -1,0 +1,74 @@
+"""Stage ``import-data``: a task's dataset from outside (a D4RL HDF5 file or a Minari dataset, ``imports.<task>``)
+instead of the collect stage, converted by the task's family and written as our Parquet schema."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from pathlib import Path
+
+import mlflow
+
+from adaptdiffuser.config import ConfigError, Params
+from adaptdiffuser.data.d4rl import ExternalData, read_d4rl
+from adaptdiffuser.data.schema import write_trajectories
+from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.io import write_json
+from adaptdiffuser.stages.common import collect_dir, dataset_path, file_digest
+from adaptdiffuser.tracking import log_params, stage_run
+
+#: what the import writes into the task's collect folder (in place of the collect stage's ``collect.json``)
+IMPORT_SUMMARY = "import.json"
+
+
+def source_digest(path: Path) -> str:
+    """SHA-256 of a file, or of a folder's files (their relative paths and contents, in sorted order)."""
+    if path.is_file():
+        return file_digest(path)
+    h = hashlib.sha256()
+    for file in sorted(p for p in path.rglob("*") if p.is_file()):
+        h.update(str(file.relative_to(path)).encode() + b"\0" + file_digest(file).encode())
+    return h.hexdigest()
+
+
+def read_external(fmt: str, path: str) -> ExternalData:
+    """The external data ``path`` names, read by its ``fmt`` (``d4rl`` or ``minari``)."""
+    if fmt == "d4rl":
+        return read_d4rl(path)
+    from adaptdiffuser.data.minari_io import read_minari
+
+    return read_minari(path)
+
+
+def run_import(params: Params, task_name: str, root: Path, progress: bool = True) -> Path:
+    """Stage ``import-data@<task>``: write ``data/<task>/dataset.parquet`` from ``imports.<task>`` and
+    ``models/<task>/collect/import.json`` (source, its SHA-256, counts)."""
+    task = params.resolve(task_name)
+    spec = params.imports.get(task.name)
+    if spec is None:
+        raise ConfigError(f"imports: has no entry for task {task.name}; add imports.{task.name}: {{format, path}}")
+    family = get_family(task.family)
+    logged = {"task": task.section("settings"), "import": dataclasses.asdict(spec), "family": family.describe(task)}
+    with stage_run(task.name, "import", 0, logged, root):
+        raw = read_external(spec.format, spec.path)
+        traj = family.from_external(task, raw)
+        source_sha = source_digest(Path(raw.source))
+        traj.metadata["generator"]["source_sha256"] = source_sha
+        out = root / dataset_path(task.name)
+        write_trajectories(out, traj)
+        stats = {"steps": len(traj), "episodes": len(traj.episodes()), "reward_mean": float(traj.reward.mean())}
+        mlflow.log_metrics(stats)
+        digest = file_digest(out)
+        log_params({"data.sha256": digest, "data.source_sha256": source_sha})
+        summary = {
+            "imported": True,
+            "format": spec.format,
+            "source": raw.source,
+            "source_sha256": source_sha,
+            "dataset": str(dataset_path(task.name)),
+            "sha256": digest,
+            **stats,
+            **family.describe(task),
+        }
+        write_json(root / collect_dir(task.name) / IMPORT_SUMMARY, summary)
+    return out
