@@ -3,8 +3,10 @@ after one `dvc repro` (built once per test session)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
+import mlflow
 import numpy as np
 import pytest
 import torch
@@ -25,6 +27,17 @@ def maze_sim(params: Params | None = None, task: str = "maze2d-umaze") -> Maze2D
     params = Params() if params is None else params
     resolved = params.resolve(task)
     return get_family(resolved.family).make_simulator(resolved)
+
+
+@pytest.fixture(autouse=True)
+def no_mlflow_run_left_active() -> Iterator[None]:
+    """A test that leaves an MLflow run active in this process (MLflow starts one implicitly when something logs
+    outside a run) fails at teardown, and the run is ended so the tests after it are not hit instead."""
+    yield
+    leaked = mlflow.active_run()
+    if leaked is not None:
+        mlflow.end_run()
+        pytest.fail(f"the test left MLflow run {leaked.info.run_id} active (something logged outside a stage run)")
 
 
 def pytest_configure(config: pytest.Config) -> None:

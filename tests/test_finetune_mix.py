@@ -106,6 +106,8 @@ def project(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, Para
     ignore = SimpleNamespace(log_metrics=lambda *a, **k: None, log_metric=lambda *a, **k: None)
     monkeypatch.setattr(finetune, "mlflow", SimpleNamespace(**vars(ignore), log_artifacts=lambda *a, **k: None))
     monkeypatch.setattr(finetune, "save_loss_curve", lambda *args, **kwargs: None)
+    monkeypatch.setattr(finetune, "log_dataset", lambda *args, **kwargs: None)
+    monkeypatch.setattr(finetune, "log_model", lambda *args, **kwargs: None)
     return tmp_path, params, seen
 
 
