@@ -283,10 +283,11 @@ def registered_model_name(task: str) -> str:
 
 
 def log_model(
-    model: Any, files: list[Path], task: str, label: str, seed: int, primary: bool, tags: dict[str, str]
+    model: Any, bundle_dir: Path, task: str, label: str, seed: int, primary: bool, tags: dict[str, str]
 ) -> str | None:
     """Log ``model`` (a torch module: the EMA diffusion model, its U-Net in ``.model``) to the active run with
-    ``mlflow.pytorch`` (pickled, on the CPU; ``files``, the checkpoint's config and normalizer, beside it), so that
+    ``mlflow.pytorch`` (pickled, on the CPU; the ``config.json`` and ``normalizer.json`` of its checkpoint folder
+    ``bundle_dir`` beside it), so that
     ``mlflow.pytorch.load_model`` gives it back; register it as a version of :func:`registered_model_name` with
     the aliases ``<label>-seed<s>`` and, for the ``primary`` (first) training seed, ``<label>`` (``phase1``,
     ``phase1-control``). Returns the version, or None inside a sweep trial (logged, not registered: trials must
@@ -302,7 +303,7 @@ def log_model(
             name="model",
             serialization_format="pickle",
             pip_requirements=[f"torch=={package_version('torch')}"],  # no inference (it imports the model again)
-            extra_files=[str(f) for f in files],
+            extra_files=[str(bundle_dir / name) for name in ("config.json", "normalizer.json")],
         )
         if os.environ.get(PARENT_RUN_ENV):
             return None

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from adaptdiffuser.data.schema import SchemaError
+from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
 
 #: the per-step fields every D4RL file has
 D4RL_FIELDS = ("observations", "actions", "rewards", "terminals", "timeouts")
@@ -66,6 +66,38 @@ class ExternalData:
             return np.zeros(0, dtype=np.int32)
         starts = np.flatnonzero(np.r_[True, np.diff(ids) != 0])
         return (np.arange(len(ids)) - np.repeat(starts, np.diff(np.r_[starts, len(ids)]))).astype(np.int32)
+
+    def trajectories(
+        self,
+        task: str,
+        observation: np.ndarray,
+        action: np.ndarray,
+        generator: dict[str, Any],
+        sim_state: np.ndarray | None = None,
+    ) -> Trajectories:
+        """These steps as task ``task``'s expert dataset, with the family's converted ``observation`` and ``action``
+        (and full ``sim_state`` when it has one): episodes, steps, rewards, and terminal/timeout on each episode's
+        last row as the source ends it; ``generator`` (after this source's metadata) goes into the file metadata."""
+        end = self.episode_end
+        state_dim = 0 if sim_state is None else sim_state.shape[1]
+        return Trajectories(
+            episode_id=self.episode_ids(),
+            step=self.steps(),
+            observation=observation.astype(np.float32),
+            action=action.astype(np.float32),
+            reward=self.rewards.astype(np.float32),
+            terminal=self.terminals & end,
+            timeout=end & ~self.terminals,
+            metadata=make_metadata(
+                task,
+                observation.shape[1],
+                action.shape[1],
+                "expert",
+                {"recipe": "import", **self.metadata, **generator},
+                state_dim=state_dim,
+            ),
+            sim_state=None if sim_state is None else sim_state.astype(np.float64),
+        )
 
     def fail(self, name: str, problem: str) -> DataImportError:
         """The one-line error about field ``name`` of this source."""

@@ -129,8 +129,7 @@ def finetune_seed(
                 shutil.copytree(root / source / "value", tmp, dirs_exist_ok=True)
         save_loss_curve(history, out / "train_loss.png")
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")
-        files = [out / "config.json", out / "normalizer.json"]
         label, primary = phase_name(phase, control), seed == params.seeds[0]
-        log_model(bundle.ema, files, task.name, label, seed, primary, {"stage": stage, "previous": cfg.previous})
+        log_model(bundle.ema, out, task.name, label, seed, primary, {"stage": stage, "previous": cfg.previous})
         resume.unlink(missing_ok=True)
     return out

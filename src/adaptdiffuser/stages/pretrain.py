@@ -106,8 +106,7 @@ def pretrain_seed(
         curve = out / "train_loss.png"
         save_loss_curve(history, curve)
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")  # weights, config and the loss curve
-        files = [out / "config.json", out / "normalizer.json"]
-        log_model(bundle.ema, files, task.name, "phase0", seed, seed == params.seeds[0], {"stage": "pretrain"})
+        log_model(bundle.ema, out, task.name, "phase0", seed, seed == params.seeds[0], {"stage": "pretrain"})
         resume.unlink(missing_ok=True)
     if family.uses_value_function:
         from adaptdiffuser.stages.value import run_value

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from adaptdiffuser.data.d4rl import ExternalData
-from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator
 
 
@@ -31,19 +31,7 @@ def locomotion_trajectories(task: Any, sim: LocomotionSimulator, raw: ExternalDa
         how = "rebuilt from the observations (root x = 0)"
     else:
         raise raw.fail("infos/qpos", f"is missing and task {task.name}'s observations do not hold the full state")
-    end = raw.episode_end
-    generator = {"recipe": "import", **raw.metadata, "sim_state": how}
-    return Trajectories(
-        episode_id=raw.episode_ids(),
-        step=raw.steps(),
-        observation=raw.observations.astype(np.float32),
-        action=raw.actions.astype(np.float32),
-        reward=raw.rewards.astype(np.float32),
-        terminal=raw.terminals & end,
-        timeout=end & ~raw.terminals,
-        metadata=make_metadata(task.name, sim.obs_dim, sim.act_dim, "expert", generator, state_dim=sim.state_dim),
-        sim_state=state.astype(np.float64),
-    )
+    return raw.trajectories(task.name, raw.observations, raw.actions, {"sim_state": how}, sim_state=state)
 
 
 def locomotion_export_spec(sim: LocomotionSimulator) -> tuple[Any, Any, Any]:

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from adaptdiffuser.data.d4rl import ExternalData
-from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.families.maze2d.layouts import Layout
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 
@@ -85,23 +85,7 @@ def maze_trajectories(task: Any, env: Maze2D, raw: ExternalData) -> Trajectories
         obs, actions = raw.observations, raw.actions
         coordinates = "gymnasium-robotics (as stored)"
     check_fits_maze(raw, env, obs[:, :2], task.name)
-    end = raw.episode_end
-    return Trajectories(
-        episode_id=raw.episode_ids(),
-        step=raw.steps(),
-        observation=obs.astype(np.float32),
-        action=actions.astype(np.float32),
-        reward=raw.rewards.astype(np.float32),
-        terminal=raw.terminals & end,
-        timeout=end & ~raw.terminals,
-        metadata=make_metadata(
-            env=task.name,
-            obs_dim=env.obs_dim,
-            act_dim=env.act_dim,
-            source="expert",
-            generator={"recipe": "import", **raw.metadata, "coordinates": coordinates},
-        ),
-    )
+    return raw.trajectories(task.name, obs, actions, {"coordinates": coordinates})
 
 
 def maze_export_spec(task: Any, env: Maze2D) -> tuple[Any, Any, Any]:
