@@ -25,6 +25,8 @@ class Planner:
         self.sampler = sampler
         self.device = device
         self.act_dim = bundle.config["act_dim"]
+        #: ``start_goal`` (plans inpaint the start and the goal) or ``start`` (the start only)
+        self.conditioning = bundle.config.get("conditioning", "start_goal")
         self.horizon = self.model.horizon
 
     def _normalize_states(self, states: np.ndarray) -> torch.Tensor:

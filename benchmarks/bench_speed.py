@@ -1,0 +1,190 @@
+"""Speed of the plain eager path against the pipeline's path, on the same inputs in one run (printed, never
+asserted). Each pair is timed in alternating rounds and reported as the median round, so that a noisy neighbour
+slows both sides alike.
+
+* training: a step of the profile's batch with ``torch.optim.Adam`` as the trainers use it (plain) and with its
+  fused kernel; with ``--compile`` also the network under ``torch.compile`` (its compile time printed);
+* batched sampling: a batch of ``--batch`` plans with the generation sampler; with ``--compile`` the network under
+  ``torch.compile`` (inductor, frozen weights) as well;
+* a U-Maze decision at batch 1 with the profile's planner, and with the 16-step DDIM planner of earlier profiles;
+* a locomotion decision (``quick-locomotion`` shapes: ``--episodes`` x ``--samples`` value-guided plans);
+* generation throughput of an evolution phase (plans/s, the profile's generation settings).
+
+It ends with machine-readable lines ``decision_ms_umaze_b1=``, ``speedup_train=``, ``speedup_sampling=``,
+``locomotion_decision_s=`` (numbers only; the speedups are the pipeline's path over the plain eager one: 1.0 while
+the pipeline runs the plain eager network, see the README's speed section).
+
+    python benchmarks/bench_speed.py [--params params.yaml] [--rounds 5] [--compile] [--device cpu]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+from speed_paths import locomotion_paths, maze_paths
+
+from adaptdiffuser.config import load_params
+from adaptdiffuser.stages.common import resolve_device
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--params", default="params.yaml")
+    parser.add_argument("--task", default=None, help="a maze2d task of params (default: the evolved task)")
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--batch", type=int, default=256, help="plans per batch for the sampling figure")
+    parser.add_argument("--episodes", type=int, default=10)
+    parser.add_argument("--samples", type=int, default=64)
+    parser.add_argument("--generate-tasks", type=int, default=512)
+    parser.add_argument("--compile", action="store_true", help="also time torch.compile (minutes of compiling)")
+    args = parser.parse_args()
+    device = resolve_device(args.device)
+    maze = maze_paths(args.params, args.task, device)
+    task = maze.task
+    print(f"{task.name}: {maze.source}; device {device}, torch threads {torch.get_num_threads()}, "
+          f"model dim {task.model.dim} mults {task.model.dim_mults}, horizon {task.diffusion.horizon}")  # fmt: skip
+
+    # training: plain Adam (the trainers'), its fused kernel, and optionally the compiled network
+    model = maze.bundle.diffusion.to(device).train()
+    x, cond = maze.training_batch(device)
+    steps = {
+        "plain": _train_step(model, torch.optim.Adam(model.parameters(), lr=1e-5), x, cond),
+        "fused": _train_step(model, torch.optim.Adam(model.parameters(), lr=1e-5, fused=True), x, cond),
+    }
+    if args.compile:
+        compiled = torch.compile(model.model)
+        steps["compiled"], compile_s = _compiled_train_step(model, compiled, x, cond)
+        print(f"torch.compile of the training step: {compile_s:.0f} s")
+    train_ms = _alternate(steps, args.rounds, device, calls=10)
+    for name, ms in train_ms.items():
+        print(f"training step, batch {x.shape[0]}, {name}: {ms:.1f} ms ({1000 / ms:.1f} steps/s)")
+    speedup_train = 1.0  # the trainers use the plain path: neither alternative pays (README "Speed")
+
+    # batched sampling with the generation sampler
+    ema = maze.bundle.ema.to(device).eval()
+    gen = load_params(args.params).phase(1).generate
+    planner = maze.planner(gen.sampler, gen.sampler_steps, device)
+    starts, goals = maze.start.repeat(args.batch, 0), maze.goal.repeat(args.batch, 0)
+    seeds = list(range(args.batch))
+    sampling = {"plain": lambda: planner.sample(starts, goals, seeds)}
+    if args.compile:
+        import torch._inductor.config as inductor_config
+
+        inductor_config.freezing = True
+        plain_net = ema.model
+        compiled_net = torch.compile(plain_net)
+        with torch.no_grad():
+            begin = time.perf_counter()
+            compiled_net(torch.zeros(args.batch, ema.horizon, ema.transition_dim, device=device),
+                         torch.zeros(args.batch, dtype=torch.long, device=device))  # fmt: skip
+            print(f"torch.compile of the sampling network (batch {args.batch}): {time.perf_counter() - begin:.0f} s")
+
+        def compiled_sample():
+            ema.model = compiled_net
+            try:
+                return planner.sample(starts, goals, seeds)
+            finally:
+                ema.model = plain_net
+
+        sampling["compiled"] = compiled_sample
+    sample_ms = _alternate(sampling, args.rounds, device, calls=1)
+    for name, ms in sample_ms.items():
+        print(f"batched sampling, {args.batch} plans, {gen.sampler} {gen.sampler_steps}, {name}: {ms:.0f} ms")
+    speedup_sampling = 1.0  # the pipeline samples with the plain eager network (see the README's speed section)
+
+    # a U-Maze decision at batch 1
+    pl = task.planner
+    decisions = {
+        f"profile {pl.sampler} {pl.sampler_steps}": maze.planner(pl.sampler, pl.sampler_steps, device),
+        "ddim 16 (earlier profiles)": maze.planner("ddim", 16, device),
+    }
+    decision_ms = _alternate(
+        {name: (lambda p=p: p.plan(maze.start, maze.goal, [0])) for name, p in decisions.items()},
+        args.rounds,
+        device,
+        calls=20,
+    )
+    for name, ms in decision_ms.items():
+        print(f"U-Maze decision at batch 1, {name}: {ms:.1f} ms")
+
+    # a locomotion decision
+    loco = locomotion_paths(device, args.episodes, args.samples)
+    decide = loco.decision()
+    decide(0)
+    loco_s = _alternate({"profile": lambda: decide(1)}, args.rounds, device, calls=1)["profile"] / 1000
+    lp, guide = loco.task.planner, loco.task.settings.guide
+    print(f"locomotion decision, {args.episodes} episodes x {args.samples} samples, {lp.sampler} {lp.sampler_steps}, "
+          f"{guide.n_guide_steps} value-gradient steps: {loco_s:.2f} s")  # fmt: skip
+
+    # generation throughput
+    generate = maze.generate(device, args.generate_tasks)
+    begin = time.perf_counter()
+    generate()
+    gen_s = time.perf_counter() - begin
+    print(f"generation: {args.generate_tasks / gen_s:.1f} plans/s ({gen.sampler} {gen.sampler_steps}, batch "
+          f"{gen.batch_size}, coin fraction {gen.coin_fraction})")  # fmt: skip
+
+    print(f"decision_ms_umaze_b1={decision_ms[f'profile {pl.sampler} {pl.sampler_steps}']:.2f}")
+    print(f"speedup_train={speedup_train:.3f}")
+    print(f"speedup_sampling={speedup_sampling:.3f}")
+    print(f"locomotion_decision_s={loco_s:.3f}")
+
+
+def _train_step(model, optimizer, x, cond) -> Callable[[], None]:
+    def step() -> None:
+        model.loss(x, cond).backward()
+        optimizer.step()
+        optimizer.zero_grad()
+
+    return step
+
+
+def _compiled_train_step(model, compiled, x, cond) -> tuple[Callable[[], None], float]:
+    plain = model.model
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, fused=True)
+
+    def step() -> None:
+        model.model = compiled
+        try:
+            model.loss(x, cond).backward()
+        finally:
+            model.model = plain
+        optimizer.step()
+        optimizer.zero_grad()
+
+    begin = time.perf_counter()
+    step()
+    return step, time.perf_counter() - begin
+
+
+def _alternate(
+    functions: dict[str, Callable[[], object]], rounds: int, device: torch.device, calls: int
+) -> dict[str, float]:
+    """Median milliseconds per call of each function: ``rounds`` rounds, each timing ``calls`` calls of every
+    function in turn, after one warm-up call each."""
+    times: dict[str, list[float]] = {name: [] for name in functions}
+    for f in functions.values():
+        f()
+    for _ in range(rounds):
+        for name, f in functions.items():
+            _sync(device)
+            begin = time.perf_counter()
+            for _ in range(calls):
+                f()
+            _sync(device)
+            times[name].append(1000 * (time.perf_counter() - begin) / calls)
+    return {name: statistics.median(values) for name, values in times.items()}
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,122 @@
+"""The real paths the speed benchmarks time and profile, built once for both scripts (not a benchmark itself).
+
+A Maze2D task's planner (the trained phase-0 model of the workspace when `dvc repro` has made it, else an
+untrained model of the profile's shape) and a locomotion task's value-guided controller (networks of the shapes of
+``profiles/quick-locomotion.yaml`` unless the params name a locomotion task).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from adaptdiffuser.checkpoint import ModelBundle, load_bundle, make_bundle
+from adaptdiffuser.config import TaskParams, apply_profile, load_params
+from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
+from adaptdiffuser.diffusion.guidance import ValueGuidance
+from adaptdiffuser.diffusion.samplers import make_sampler
+from adaptdiffuser.families.base import TaskFiles
+from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.planning import Planner, ValuePlanningController
+from adaptdiffuser.stages.common import model_dir
+
+PROFILES = Path(__file__).resolve().parents[1] / "profiles"
+
+
+@dataclass
+class MazePaths:
+    """A Maze2D task with its planner's bundle and one protocol start/goal."""
+
+    task: TaskParams
+    bundle: ModelBundle
+    source: str
+    start: np.ndarray
+    goal: np.ndarray
+    coin: torch.Tensor
+    alpha: float
+
+    def planner(self, sampler: str, steps: int, device: torch.device) -> Planner:
+        return Planner(self.bundle, make_sampler(sampler, steps), device)
+
+    def training_batch(self, device: torch.device) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
+        """A fixed batch of the profile's size and its start/goal inpainting conditions."""
+        model = self.bundle.diffusion
+        gen = torch.Generator().manual_seed(0)
+        x = torch.rand(self.task.pretrain.batch_size, model.horizon, model.transition_dim, generator=gen) * 2 - 1
+        x = x.to(device)
+        return x, {0: x[:, 0, model.act_dim :], model.horizon - 1: x[:, -1, model.act_dim :]}
+
+    def generate(self, device: torch.device, tasks: int) -> Callable[[], object]:
+        """One call of the family's generation (``tasks`` plans of the profile's generation settings)."""
+        params = load_params("params.yaml")
+        g = replace(params.phase(1).generate, tasks=tasks)
+        planner = self.planner(g.sampler, g.sampler_steps, device)
+        family = get_family(self.task.family)
+        files = TaskFiles(Path("."), self.task.name, model_dir(self.task.name, 0, 0), 0)
+        return lambda: family.generate(self.task, planner, files, g, self.alpha, 0, {}, False)
+
+
+def maze_paths(params_path: str, task_name: str | None, device: torch.device) -> MazePaths:
+    """The Maze2D task of ``params_path`` (default: the evolved task) and its planner's bundle."""
+    params = load_params(params_path)
+    task = params.resolve(task_name or params.evolve or params.tasks[0])
+    env = get_family(task.family).make_simulator(task)
+    path = model_dir(task.name, 0, 0)
+    if path.exists():
+        bundle, source = load_bundle(path, device), f"trained {path}"
+    else:
+        dim = env.obs_dim + env.act_dim
+        normalizer = MinMaxNormalizer(-np.ones(dim) * 5, np.ones(dim) * 5)
+        bundle = make_bundle(task.model, task.diffusion, env.obs_dim, env.act_dim, normalizer)
+        source = "an untrained model of the profile's shape"
+    coin = torch.as_tensor(env.cell_to_xy(env.layout.free_cells[0])[None], dtype=torch.float32, device=device)
+    start = env.reset(np.random.default_rng(0))[None]
+    return MazePaths(task, bundle, source, start, env.goal_state()[None], coin, max(params.alpha, 1.0))
+
+
+@dataclass
+class LocomotionPaths:
+    """A locomotion task's value-guided controller on a batch of episodes."""
+
+    task: TaskParams
+    controller: ValuePlanningController
+    sims: list
+    obs: np.ndarray
+
+    def decision(self) -> Callable[[int], np.ndarray]:
+        return lambda t: self.controller.act(self.sims, self.obs, t)
+
+
+def locomotion_paths(
+    device: torch.device, episodes: int, samples: int, sampler: str | None = None, steps: int | None = None
+) -> LocomotionPaths:
+    """Untrained networks of ``quick-locomotion``'s hopper-medium shapes and its planner (or ``sampler``/``steps``),
+    ``episodes`` simulators reset from seeds 0.., ``samples`` plans per episode per decision."""
+    with tempfile.TemporaryDirectory() as tmp:
+        params_path = Path(tmp) / "params.yaml"
+        params_path.write_text((PROFILES.parent / "params.yaml").read_text())
+        apply_profile("quick-locomotion", PROFILES, params_path)
+        params = load_params(params_path)
+    task = params.resolve("hopper-medium")
+    family = get_family(task.family)
+    sim = family.make_simulator(task)
+    dim = sim.obs_dim + sim.act_dim
+    normalizer = GaussianNormalizer(np.zeros(dim), np.ones(dim))
+    bundle = make_bundle(task.model, task.diffusion, sim.obs_dim, sim.act_dim, normalizer, conditioning="start")
+    vm = task.settings.value_model
+    value_net = ValueNetwork(dim, task.diffusion.horizon, vm.dim, tuple(vm.dim_mults)).to(device).eval()
+    g = task.settings.guide
+    sampler_ = make_sampler(sampler or task.planner.sampler, steps or task.planner.sampler_steps)
+    planner = Planner(bundle, sampler_, device)
+    guidance = ValueGuidance(value_net, g.scale, g.n_guide_steps, g.t_stopgrad, g.scale_grad_by_std)
+    controller = ValuePlanningController(planner, guidance, samples, seed=0)
+    sims = [family.make_simulator(task) for _ in range(episodes)]
+    obs = np.stack([s.reset(np.random.default_rng(i)) for i, s in enumerate(sims)])
+    controller.begin(sims, obs, list(range(episodes)))
+    return LocomotionPaths(task, controller, sims, obs)
