@@ -276,7 +276,7 @@ REJECTED = [
     # the task's own horizon counts, not the top-level one
     (umaze(diffusion={"horizon": 320}), f"{T}.env.episode_steps", "shorter than diffusion.horizon=320"),
     (umaze(planner={"sampler_steps": 65}), f"{T}.planner.sampler_steps", "65 exceeds diffusion.n_steps=64"),
-    (umaze(diffusion={"n_steps": 8}), f"{T}.planner.sampler_steps", "16 exceeds diffusion.n_steps=8"),
+    (umaze(diffusion={"n_steps": 2}), f"{T}.planner.sampler_steps", "4 exceeds diffusion.n_steps=2"),
     ({"planner": {"sampler_steps": 65}}, "planner.sampler_steps", "exceeds diffusion.n_steps=64"),
     (
         {"phases": {"phase1": {"previous": 0, "generate": {"sampler_steps": 65}}}},
