@@ -6,7 +6,8 @@ slows both sides alike.
   fused kernel; with ``--compile`` also the network under ``torch.compile`` (its compile time printed);
 * batched sampling: a batch of ``--batch`` plans with the generation sampler; with ``--compile`` the network under
   ``torch.compile`` (inductor, frozen weights) as well;
-* a U-Maze decision at batch 1 with the profile's planner, and with the 16-step DDIM planner of earlier profiles;
+* a U-Maze decision at batch 1 with the profile's planner (also with coin guidance), the 16-step DDIM planner of
+  earlier profiles and the full DDPM chain; evaluation throughput (protocol episodes in one batch);
 * a locomotion decision (``quick-locomotion`` shapes: ``--episodes`` x ``--samples`` value-guided plans);
 * generation throughput of an evolution phase (plans/s, the profile's generation settings).
 
@@ -22,12 +23,13 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import torch
 from speed_paths import locomotion_paths, maze_paths
 
-from adaptdiffuser.config import load_params
+from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.stages.common import resolve_device
 
 
@@ -41,6 +43,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--samples", type=int, default=64)
     parser.add_argument("--generate-tasks", type=int, default=512)
+    parser.add_argument("--eval-episodes", type=int, default=50)
     parser.add_argument("--compile", action="store_true", help="also time torch.compile (minutes of compiling)")
     args = parser.parse_args()
     device = resolve_device(args.device)
@@ -67,7 +70,7 @@ def main() -> None:
 
     # batched sampling with the generation sampler
     ema = maze.bundle.ema.to(device).eval()
-    gen = load_params(args.params).phase(1).generate
+    gen = maze.generation
     planner = maze.planner(gen.sampler, gen.sampler_steps, device)
     starts, goals = maze.start.repeat(args.batch, 0), maze.goal.repeat(args.batch, 0)
     seeds = list(range(args.batch))
@@ -76,8 +79,7 @@ def main() -> None:
         import torch._inductor.config as inductor_config
 
         inductor_config.freezing = True
-        plain_net = ema.model
-        compiled_net = torch.compile(plain_net)
+        compiled_net = torch.compile(ema.model)
         with torch.no_grad():
             begin = time.perf_counter()
             compiled_net(torch.zeros(args.batch, ema.horizon, ema.transition_dim, device=device),
@@ -85,11 +87,8 @@ def main() -> None:
             print(f"torch.compile of the sampling network (batch {args.batch}): {time.perf_counter() - begin:.0f} s")
 
         def compiled_sample():
-            ema.model = compiled_net
-            try:
+            with _network(ema, compiled_net):
                 return planner.sample(starts, goals, seeds)
-            finally:
-                ema.model = plain_net
 
         sampling["compiled"] = compiled_sample
     sample_ms = _alternate(sampling, args.rounds, device, calls=1)
@@ -99,18 +98,30 @@ def main() -> None:
 
     # a U-Maze decision at batch 1
     pl = task.planner
+    profile_planner = maze.planner(pl.sampler, pl.sampler_steps, device)
+    coin = profile_planner.guidance(CoinObjective(maze.coin), maze.alpha)
+    n_steps = task.diffusion.n_steps
     decisions = {
-        f"profile {pl.sampler} {pl.sampler_steps}": maze.planner(pl.sampler, pl.sampler_steps, device),
-        "ddim 16 (earlier profiles)": maze.planner("ddim", 16, device),
+        f"profile {pl.sampler} {pl.sampler_steps}": (profile_planner, None),
+        f"profile {pl.sampler} {pl.sampler_steps} with coin guidance": (profile_planner, coin),
+        "ddim 16 (earlier profiles)": (maze.planner("ddim", 16, device), None),
+        f"ddpm {n_steps} (the full chain)": (maze.planner("ddpm", n_steps, device), None),
     }
     decision_ms = _alternate(
-        {name: (lambda p=p: p.plan(maze.start, maze.goal, [0])) for name, p in decisions.items()},
+        {name: (lambda p=p, g=g: p.plan(maze.start, maze.goal, [0], guidance=g)) for name, (p, g) in decisions.items()},
         args.rounds,
         device,
-        calls=20,
+        calls=10,
     )
     for name, ms in decision_ms.items():
         print(f"U-Maze decision at batch 1, {name}: {ms:.1f} ms")
+
+    # evaluation throughput: protocol episodes in one batch, the profile's planner and controller
+    evaluate = maze.evaluate(device, args.eval_episodes)
+    begin = time.perf_counter()
+    evaluate()
+    eval_s = time.perf_counter() - begin
+    print(f"evaluation: {args.eval_episodes / eval_s:.1f} episodes/s ({args.eval_episodes} episodes in one batch)")
 
     # a locomotion decision
     loco = locomotion_paths(device, args.episodes, args.samples)
@@ -145,21 +156,28 @@ def _train_step(model, optimizer, x, cond) -> Callable[[], None]:
 
 
 def _compiled_train_step(model, compiled, x, cond) -> tuple[Callable[[], None], float]:
-    plain = model.model
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, fused=True)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
 
     def step() -> None:
-        model.model = compiled
-        try:
+        with _network(model, compiled):
             model.loss(x, cond).backward()
-        finally:
-            model.model = plain
         optimizer.step()
         optimizer.zero_grad()
 
     begin = time.perf_counter()
     step()
     return step, time.perf_counter() - begin
+
+
+@contextmanager
+def _network(diffusion, network) -> Iterator[None]:
+    """Run ``diffusion`` with ``network`` (e.g. its compiled twin) in place of its own for the duration."""
+    own = diffusion.model
+    diffusion.model = network
+    try:
+        yield
+    finally:
+        diffusion.model = own
 
 
 def _alternate(

@@ -17,7 +17,6 @@ import torch
 from speed_paths import locomotion_paths, maze_paths
 from torch.profiler import ProfilerActivity, profile
 
-from adaptdiffuser.config import load_params
 from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.stages.common import resolve_device
 
@@ -73,7 +72,7 @@ def main() -> None:
     args = parser.parse_args()
     device = resolve_device(args.device)
     maze = maze_paths(args.params, args.task, device)
-    task, gen = maze.task, load_params(args.params).phase(1).generate
+    task, gen = maze.task, maze.generation
     model = maze.bundle.diffusion.to(device).train()
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
     x, cond = maze.training_batch(device)

@@ -16,10 +16,11 @@ import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import ModelBundle, load_bundle, make_bundle
-from adaptdiffuser.config import TaskParams, apply_profile, load_params
+from adaptdiffuser.config import GenerateParams, TaskParams, apply_profile, load_params
 from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
 from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import make_sampler
+from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.models.value import ValueNetwork
@@ -31,9 +32,10 @@ PROFILES = Path(__file__).resolve().parents[1] / "profiles"
 
 @dataclass
 class MazePaths:
-    """A Maze2D task with its planner's bundle and one protocol start/goal."""
+    """A Maze2D task with its planner's bundle, its phase-1 generation settings and one protocol start/goal."""
 
     task: TaskParams
+    generation: GenerateParams
     bundle: ModelBundle
     source: str
     start: np.ndarray
@@ -52,14 +54,24 @@ class MazePaths:
         x = x.to(device)
         return x, {0: x[:, 0, model.act_dim :], model.horizon - 1: x[:, -1, model.act_dim :]}
 
+    def files(self) -> TaskFiles:
+        return TaskFiles(Path("."), self.task.name, model_dir(self.task.name, 0, 0), 0)
+
     def generate(self, device: torch.device, tasks: int) -> Callable[[], object]:
         """One call of the family's generation (``tasks`` plans of the profile's generation settings)."""
-        params = load_params("params.yaml")
-        g = replace(params.phase(1).generate, tasks=tasks)
+        g = replace(self.generation, tasks=tasks)
         planner = self.planner(g.sampler, g.sampler_steps, device)
         family = get_family(self.task.family)
-        files = TaskFiles(Path("."), self.task.name, model_dir(self.task.name, 0, 0), 0)
-        return lambda: family.generate(self.task, planner, files, g, self.alpha, 0, {}, False)
+        return lambda: family.generate(self.task, planner, self.files(), g, self.alpha, 0, {}, False)
+
+    def evaluate(self, device: torch.device, episodes: int) -> Callable[[], object]:
+        """``episodes`` protocol episodes in one batch with the profile's planner and the family's controller."""
+        pl = self.task.planner
+        planner = self.planner(pl.sampler, pl.sampler_steps, device)
+        family = get_family(self.task.family)
+        controller = family.controller(self.task, planner, self.files(), device)
+        make_env = lambda: family.make_simulator(self.task)  # noqa: E731
+        return lambda: run_episodes(make_env, controller, episodes, self.task.evaluate.seed, episodes, progress=False)
 
 
 def maze_paths(params_path: str, task_name: str | None, device: torch.device) -> MazePaths:
@@ -77,7 +89,8 @@ def maze_paths(params_path: str, task_name: str | None, device: torch.device) ->
         source = "an untrained model of the profile's shape"
     coin = torch.as_tensor(env.cell_to_xy(env.layout.free_cells[0])[None], dtype=torch.float32, device=device)
     start = env.reset(np.random.default_rng(0))[None]
-    return MazePaths(task, bundle, source, start, env.goal_state()[None], coin, max(params.alpha, 1.0))
+    generation = params.phase(1).generate
+    return MazePaths(task, generation, bundle, source, start, env.goal_state()[None], coin, max(params.alpha, 1.0))
 
 
 @dataclass
