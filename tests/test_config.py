@@ -97,6 +97,7 @@ def test_profile_list() -> None:
         "quick",
         "smoke",
         "quick-locomotion",
+        "quick-kuka",
         "paper-locomotion",
         "science",
         *PAPER,
@@ -125,7 +126,8 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert maze.settings.collect.steps == 4000 and maze.diffusion.horizon == 32
         assert maze.settings.env.maze == "umaze" and maze.settings.expert.p_gain == 10.0  # inherited from quick
         hopper = params.resolve("hopper-medium")  # one task of each family, with its own generic overrides
-        assert params.tasks == (UMAZE, "hopper-medium") and params.coin_tasks == (UMAZE,)
+        assert params.tasks == (UMAZE, "hopper-medium", "kuka-stacking") and params.coin_tasks == (UMAZE,)
+        assert params.resolve("kuka-stacking").family == "kuka"
         assert hopper.family == "locomotion" and hopper.settings.episode_steps == 40
         assert hopper.diffusion.horizon == 16 and hopper.model.dim_mults == [1, 2]
         assert hopper.pretrain == params.pretrain  # not overridden: the top-level section
@@ -137,6 +139,10 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert params.phase_names == ["phase1", "phase2"] and params.phase(1).generate.sampler == "ddpm"
         hopper = params.resolve("hopper-medium")
         assert hopper.family == "locomotion" and hopper.diffusion.horizon == 32
+    if profile == "quick-kuka":
+        assert params.tasks == ("kuka-stacking",) and params.coin_tasks == () and params.evolve is None
+        kuka = params.resolve("kuka-stacking")
+        assert kuka.family == "kuka" and kuka.diffusion.horizon == 128 and kuka.settings.replans == 3
     if profile == "paper-locomotion":
         assert len(params.tasks) == 9 and params.coin_tasks == () and params.evolve == "hopper-medium"
         assert params.phase_names == ["phase1", "phase2"] and params.phase(1).discriminate.rule == "paper"
@@ -375,7 +381,7 @@ REJECTED = [
     (
         {"task": {"maze2d-medium": {"family": "quadcopter"}}},
         "task.maze2d-medium.family",
-        "must be one of ['locomotion', 'maze2d']",
+        "must be one of ['kuka', 'locomotion', 'maze2d']",
     ),
     ({"task": {"maze2d-medium": {"env": {"maze": "medium"}}}}, "task.maze2d-medium.family", "got None"),
     ({"task": {"maze2d-medium": 5}}, "task.maze2d-medium", "must be a mapping with a 'family' key, got 5"),
@@ -415,7 +421,7 @@ def test_rejected_values_give_a_one_line_error_starting_with_the_key(
         ("coin_tasks: [maze2d-umaze]", "coin_tasks: []", "coin_tasks: must list exactly the tasks of 'tasks'"),
         ("evolve: maze2d-umaze", "evolve: null", "evolve: is null but phases are declared"),
         ("evolve: maze2d-umaze", "evolve: maze2d-large", "evolve: 'maze2d-large' must be one of tasks"),
-        ("    family: maze2d", "    family: maze3d", f"{T}.family: must be one of ['locomotion', 'maze2d']"),
+        ("    family: maze2d", "    family: maze3d", f"{T}.family: must be one of ['kuka', 'locomotion', 'maze2d']"),
         ("phase1: {previous: 0}", "phase1: 3", "phases.phase1: must be a mapping"),
         ("random_goal: false", "random_goal: no", None),  # YAML 1.1 reads `no` as false: accepted
     ],

@@ -81,10 +81,10 @@ def test_every_registered_family_loads_under_its_own_name() -> None:
 
 
 def test_unknown_family_names_the_registered_ones() -> None:
-    assert set(FAMILIES) == {"maze2d", "locomotion"}
-    with pytest.raises(KeyError, match=r"registered families: \['locomotion', 'maze2d'\]"):
+    assert set(FAMILIES) == {"maze2d", "locomotion", "kuka"}
+    with pytest.raises(KeyError, match=r"registered families: \['kuka', 'locomotion', 'maze2d'\]"):
         get_family("quadcopter")
-    with pytest.raises(KeyError, match=r"registered families: \['locomotion', 'maze2d'\]"):
+    with pytest.raises(KeyError, match=r"registered families: \['kuka', 'locomotion', 'maze2d'\]"):
         task_params_model("quadcopter")
 
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import mlflow
 import networkx as nx
+import pyarrow.parquet as pq
 import pytest
 import yaml
 from dvc.repo import Repo
@@ -27,10 +28,10 @@ from adaptdiffuser.tracking import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
 PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
-MAZE, HOPPER = "maze2d-umaze", "hopper-medium"
+MAZE, HOPPER, KUKA = "maze2d-umaze", "hopper-medium", "kuka-stacking"
 PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
 STAGES = [
-    *(f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in PHASE0_STAGES),
+    *(f"{stage}@{task}" for task in (MAZE, HOPPER, KUKA) for stage in PHASE0_STAGES),
     f"evaluate-coin-phase0@{MAZE}",
     *(f"{stage}@phase{k}" for k in (1, 2) for stage in PHASE_STAGES),
     "summarize",
@@ -48,7 +49,7 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
     assert bundle.config["conditioning"] == "start_goal" and bundle.normalizer.kind == "minmax"
 
     summary = json.loads((smoke_repo / "metrics/summary.json").read_text())
-    assert set(summary) == {MAZE, HOPPER}
+    assert set(summary) == {MAZE, HOPPER, KUKA}
     maze = summary[MAZE]
     assert set(maze) == {"phase_0", "phase_1", "phase_2"}
     for k in (0, 1, 2):
@@ -123,6 +124,29 @@ def test_repro_runs_the_locomotion_baseline(smoke_repo: Path) -> None:
     assert 0.0 <= phase0["terminated_rate"] <= 1.0
     episodes = (smoke_repo / f"results/{HOPPER}/phase0/seed0/episodes.parquet").exists()
     assert episodes and (smoke_repo / f"plots/{HOPPER}/phase0/seed0/plan_00.png").read_bytes()[:4] == b"\x89PNG"
+
+
+@pytest.mark.e2e
+def test_repro_runs_the_kuka_baseline(smoke_repo: Path) -> None:
+    """kuka-stacking: state-only demonstrations, a start-conditioned min/max model, stacking scored against the
+    demonstrator and random joints, pick-and-place for both setups beside it, and a picture of the final scene."""
+    traj = read_trajectories(smoke_repo / f"data/{KUKA}/dataset.parquet")
+    assert traj.metadata["act_dim"] == 0 and traj.observation.shape[1] == 39 and len(traj.episodes()) == 2
+    demonstrator = json.loads((smoke_repo / f"models/{KUKA}/collect/demonstrator.json").read_text())
+    assert demonstrator["episodes"] == 2 and 0.0 <= demonstrator["success_rate"] <= 1.0
+    bundle = load_bundle(smoke_repo / f"models/{KUKA}/phase0/seed0")
+    assert bundle.config["conditioning"] == "start" and bundle.normalizer.kind == "minmax"
+    assert bundle.config["act_dim"] == 0
+    ref = json.loads((smoke_repo / f"metrics/tasks/{KUKA}/reference.json").read_text())
+    assert (ref["r_min"], ref["r_max"]) == (0.0, 3.0)
+    assert {"demonstrator_score_mean", "random_score_mean"} <= set(ref)
+    phase0 = json.loads((smoke_repo / "metrics/summary.json").read_text())[KUKA]["phase_0"]
+    assert phase0["n_episodes"] == 2 and 0.0 <= phase0["score_mean"] <= 100.0
+    for setup in (1, 2):
+        assert 0.0 <= phase0[f"pick_place_setup{setup}_score_mean"] <= 100.0
+    results = pq.read_table(smoke_repo / f"results/{KUKA}/phase0/seed0/episodes.parquet").to_pydict()
+    assert results["length"] == [2 * 15, 2 * 15]  # two open-loop plans of 16 states (15 steps each)
+    assert (smoke_repo / f"plots/{KUKA}/phase0/seed0/plan_00.png").read_bytes()[:4] == b"\x89PNG"
 
 
 @pytest.mark.e2e
@@ -228,9 +252,10 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
     try:
         # a generic evaluation key: every task's reference and evaluations (summarize follows when metrics change)
         ran = dry_run_with(lambda p: p["evaluate"].update(episodes=2))
-        assert ran == {f"reference@{MAZE}", f"reference@{HOPPER}", f"evaluate-phase0@{HOPPER}", *evaluations}
+        others = {f"{stage}@{task}" for task in (HOPPER, KUKA) for stage in ("reference", "evaluate-phase0")}
+        assert ran == {f"reference@{MAZE}", *others, *evaluations}
         assert dry_run_with(lambda p: p["planner"].update(sampler_steps=2)) == (
-            evaluations | coin | {f"reference@{MAZE}", f"reference@{HOPPER}", f"evaluate-phase0@{HOPPER}"}
+            evaluations | coin | {f"reference@{MAZE}", *others}
         )
         # one task's own entry reruns that task's stages only
         ran = dry_run_with(lambda p: p["task"][HOPPER]["guide"].update(n_samples=3))
@@ -251,7 +276,7 @@ def _dry_run(root: Path) -> set[str]:
 
 
 def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path) -> None:
-    """On the smoke profile (both families): every stage of stage_names, wired task by task."""
+    """On the smoke profile (every family): every stage of stage_names, wired task by task."""
     for name in ["dvc.yaml", "profiles"]:
         src = REPO / name
         (shutil.copytree if src.is_dir() else shutil.copy2)(src, tmp_path / name)
@@ -262,7 +287,7 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path
         upstream = {stage.name: {dep.name for dep in graph.successors(stage)} for stage in graph.nodes}
         assert nx.is_directed_acyclic_graph(graph)
     assert set(upstream) == set(stage_names(params)) == set(STAGES)
-    for task in (MAZE, HOPPER):
+    for task in (MAZE, HOPPER, KUKA):
         assert upstream[f"collect@{task}"] == set()
         assert upstream[f"reference@{task}"] == {f"collect@{task}"}
         assert upstream[f"pretrain@{task}"] == {f"collect@{task}"}
@@ -279,7 +304,7 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path
         assert upstream[f"control@{name}"] == {f"collect@{MAZE}", source}
         assert upstream[f"evaluate-control@{name}"] == {f"control@{name}", f"evaluate@{name}", f"reference@{MAZE}"}
     assert upstream["summarize"] == {
-        f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in ("reference", "evaluate-phase0")
+        f"{stage}@{task}" for task in (MAZE, HOPPER, KUKA) for stage in ("reference", "evaluate-phase0")
     } | {f"evaluate-coin-phase0@{MAZE}"} | {
         f"{stage}@{name}"
         for name in params.phase_names
@@ -297,7 +322,7 @@ def test_dvc_exp_run_alpha_reruns_only_what_alpha_affects(smoke_repo: Path, tmp_
     out = _run(["dvc", "exp", "run", "-n", "alpha50", "-S", "alpha=50"], repo)
     ran = {stage for stage in STAGES if f"Running stage '{stage}'" in out}
     # alpha guides coin tasks in generation and the coin evaluation; everything downstream of them follows
-    assert {f"{stage}@{task}" for task in (MAZE, HOPPER) for stage in PHASE0_STAGES}.isdisjoint(ran)
+    assert {f"{stage}@{task}" for task in (MAZE, HOPPER, KUKA) for stage in PHASE0_STAGES}.isdisjoint(ran)
     assert {"generate@phase1", "generate@phase2", f"evaluate-coin-phase0@{MAZE}", "evaluate-coin@phase2"} <= ran
     shown = json.loads(_run(["dvc", "exp", "show", "--json"], repo))
     assert "alpha50" in json.dumps(shown) and "both_rate" in json.dumps(shown)

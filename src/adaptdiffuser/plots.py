@@ -31,7 +31,7 @@ def save_plan_picture(
     env.draw(ax, plan=plan, executed=executed, goal=goal)
     ax.set_title(title, fontsize=9)
     ax.legend(loc="lower right", fontsize=6)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def save_loss_curve(history: list[tuple[int, float]], path: str | Path) -> None:
@@ -42,10 +42,11 @@ def save_loss_curve(history: list[tuple[int, float]], path: str | Path) -> None:
     ax.set_xlabel("step")
     ax.set_ylabel("loss")
     ax.set_yscale("log")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
-def _save(fig: plt.Figure, path: str | Path) -> None:
+def save_figure(fig: plt.Figure, path: str | Path) -> None:
+    """Write ``fig`` to ``path`` as a PNG, atomically, and close it."""
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=100, bbox_inches="tight")
     plt.close(fig)
@@ -72,7 +73,7 @@ def save_discriminator_histograms(judgement: Judgement, max_error: float, path: 
     right.set_xlabel("real return over the plan")
     right.legend(fontsize=7)
     fig.suptitle(title, fontsize=9)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def save_score_by_phase(
@@ -105,7 +106,7 @@ def save_score_by_phase(
     ax.set_xticks(phases)
     ax.set_xlabel("phase (0 = Diffuser)")
     ax.set_ylabel("normalized score")
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def save_coin_picture(
@@ -133,7 +134,7 @@ def save_coin_picture(
         ax.plot(*coin[:2], "*", color="darkgoldenrod", ms=14, label="coin")
         ax.legend(loc="lower right", fontsize=6)
     fig.suptitle(title, fontsize=9)
-    _save(fig, path)
+    save_figure(fig, path)
 
 
 def save_series_picture(
@@ -149,4 +150,4 @@ def save_series_picture(
     axes[0, 0].set_title(title, fontsize=9)
     axes[0, 0].legend(loc="best", fontsize="small")
     axes[-1, 0].set_xlabel("step")
-    _save(fig, path)
+    save_figure(fig, path)

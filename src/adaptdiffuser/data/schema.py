@@ -1,6 +1,7 @@
 """The project's one trajectory schema, as Parquet: one row per step.
 
-Columns: ``episode_id`` (int64), ``step`` (int32), ``observation`` and ``action`` (fixed-size float32 lists),
+Columns: ``episode_id`` (int64), ``step`` (int32), ``observation`` and ``action`` (fixed-size float32 lists; for
+state-only datasets, whose metadata says ``act_dim`` 0, ``action`` holds empty lists),
 ``reward`` (float32), ``terminal`` and ``timeout`` (bool), and, when the metadata's ``state_dim`` is positive,
 ``sim_state`` (fixed-size float64 list): the simulator's full state (e.g. MuJoCo qpos + qvel) before the step, so
 any dataset state can be restored exactly. Extra columns (for example the task a synthetic
@@ -47,7 +48,7 @@ def arrow_schema(obs_dim: int, act_dim: int, state_dim: int = 0) -> pa.Schema:
         ("episode_id", pa.int64()),
         ("step", pa.int32()),
         ("observation", pa.list_(pa.float32(), obs_dim)),
-        ("action", pa.list_(pa.float32(), act_dim)),
+        ("action", pa.list_(pa.float32(), act_dim) if act_dim else pa.list_(pa.float32())),
         ("reward", pa.float32()),
         ("terminal", pa.bool_()),
         ("timeout", pa.bool_()),
@@ -125,7 +126,7 @@ def write_trajectories(path: str | Path, traj: Trajectories) -> None:
         pa.array(traj.episode_id.astype(np.int64)),
         pa.array(traj.step.astype(np.int32)),
         pa.FixedSizeListArray.from_arrays(pa.array(traj.observation.astype(np.float32).ravel()), obs_dim),
-        pa.FixedSizeListArray.from_arrays(pa.array(traj.action.astype(np.float32).ravel()), act_dim),
+        _action_array(traj.action, act_dim),
         pa.array(traj.reward.astype(np.float32)),
         pa.array(traj.terminal.astype(bool)),
         pa.array(traj.timeout.astype(bool)),
@@ -146,6 +147,14 @@ def write_trajectories(path: str | Path, traj: Trajectories) -> None:
     table = pa.Table.from_arrays(columns, schema=schema)
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
+
+
+def _action_array(action: np.ndarray, act_dim: int) -> pa.Array:
+    """The action column: fixed-size lists, or for state-only datasets (``act_dim`` 0) empty lists (Parquet cannot
+    store fixed-size lists of size 0)."""
+    if act_dim == 0:
+        return pa.ListArray.from_arrays(pa.array(np.zeros(len(action) + 1, np.int32)), pa.array([], pa.float32()))
+    return pa.FixedSizeListArray.from_arrays(pa.array(action.astype(np.float32).ravel()), act_dim)
 
 
 def read_trajectories(path: str | Path, env: str | None = None) -> Trajectories:
@@ -245,6 +254,8 @@ def _check_finite(traj: Trajectories, name: str, values: np.ndarray, path: Path)
 
 def _fixed_list(table: pa.Table, name: str, n: int, dim: int) -> np.ndarray:
     flat = table.column(name).combine_chunks().flatten().to_numpy()
+    if flat.size != n * dim:  # only variable-size lists (state-only actions) can disagree with the metadata
+        raise SchemaError(f"column {name!r} holds {flat.size} values for {n} rows of {dim} (metadata)")
     return flat.reshape(n, dim)
 
 
@@ -265,9 +276,12 @@ def _check_metadata(meta: dict, path: str | Path) -> None:
         )
     if meta["source"] not in SOURCES:
         raise SchemaError(f"{path}: metadata field 'source' must be one of {SOURCES}, got {meta['source']!r}")
-    for key in ("obs_dim", "act_dim"):
-        if not isinstance(meta[key], int) or meta[key] <= 0:
-            raise SchemaError(f"{path}: metadata field {key!r} must be a positive integer, got {meta[key]!r}")
+    if not isinstance(meta["obs_dim"], int) or meta["obs_dim"] <= 0:
+        raise SchemaError(f"{path}: metadata field 'obs_dim' must be a positive integer, got {meta['obs_dim']!r}")
+    if not isinstance(meta["act_dim"], int) or meta["act_dim"] < 0:
+        raise SchemaError(
+            f"{path}: metadata field 'act_dim' must be a non-negative integer (0: states only), got {meta['act_dim']!r}"
+        )
     state_dim = meta.get("state_dim", 0)
     if not isinstance(state_dim, int) or state_dim < 0:
         raise SchemaError(f"{path}: metadata field 'state_dim' must be a non-negative integer, got {state_dim!r}")

@@ -113,6 +113,11 @@ class Family(ABC):
         """Family-specific evaluation metrics (beside the score's mean and standard error)."""
         return {}
 
+    def extra_evaluations(self, task: Any, planner: Any, progress: bool) -> dict[str, float]:
+        """Metrics of evaluations beside the task's score, run by the evaluate stage with the same planner (for
+        example an unseen task, guided by the task's own settings); none by default."""
+        return {}
+
     @abstractmethod
     def save_picture(
         self, task: Any, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None

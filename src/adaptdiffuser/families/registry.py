@@ -16,6 +16,7 @@ from adaptdiffuser.families.base import Family
 FAMILIES: dict[str, str] = {
     "maze2d": "adaptdiffuser.families.maze2d",
     "locomotion": "adaptdiffuser.families.locomotion",
+    "kuka": "adaptdiffuser.families.kuka",
 }
 
 

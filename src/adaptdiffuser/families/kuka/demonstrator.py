@@ -1,0 +1,154 @@
+"""The scripted stacking demonstrator (the expert data of the seen task): for blocks 1, 2, 3 in turn, move the cup
+above the block, descend, attach, lift, move over the tower on block 0, descend, release and lift; every way point
+reached by inverse kinematics, in straight cup-space segments at a fixed speed."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from adaptdiffuser.evaluation import Controller
+from adaptdiffuser.families.kuka.scene import BLOCK_HALF, N_BLOCKS, N_JOINTS, KukaScene
+from adaptdiffuser.families.kuka.tasks import block_positions
+
+
+def _cylindrical(p: np.ndarray) -> np.ndarray:
+    return np.array([np.hypot(p[0], p[1]), np.arctan2(p[1], p[0]), p[2]])
+
+
+def _segment(start: np.ndarray, end: np.ndarray, step: float) -> Iterator[np.ndarray]:
+    """Points every ``step`` metres (about) from ``start`` to ``end``, moving in cylindrical coordinates around the
+    base (radius, angle, height), so a move across the workspace swings around the arm instead of through it."""
+    a, b = _cylindrical(start), _cylindrical(end)
+    length = np.sqrt((b[0] - a[0]) ** 2 + ((b[1] - a[1]) * max(a[0], b[0])) ** 2 + (b[2] - a[2]) ** 2)
+    n = max(1, int(np.ceil(length / step)))
+    for k in range(1, n + 1):
+        r, angle, z = a + (b - a) * k / n
+        yield np.array([r * np.cos(angle), r * np.sin(angle), z])
+
+
+def stacking_commands(
+    scene: KukaScene, obs: np.ndarray, speed: float, safe_height: float, dwell: int
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Cup way points and suction flags ``(cup_xyz, flags[4])`` of one stacking demonstration from ``obs``; the
+    caller turns each into joint targets and steps the scene (the tower's top is read from the live scene)."""
+    cup, _ = scene.cup()
+    flags = np.zeros(N_BLOCKS)
+    for block in range(1, N_BLOCKS):
+        pos = block_positions(scene.observation())
+        top = pos[block] + np.array([0.0, 0.0, BLOCK_HALF[2] + 0.005])
+        tower = pos[block - 1] + np.array([0.0, 0.0, BLOCK_HALF[2] + 2 * BLOCK_HALF[2] + 0.01])
+        height = max(safe_height, tower[2] + 0.15)
+        route = [
+            np.array([cup[0], cup[1], height]),
+            np.array([top[0], top[1], height]),
+            top,
+        ]
+        for target in route:
+            for point in _segment(cup, target, speed):
+                yield point, flags.copy()
+            cup = target
+        flags[block] = 1.0
+        for _ in range(dwell):
+            yield cup, flags.copy()
+        route = [np.array([cup[0], cup[1], height]), np.array([tower[0], tower[1], height]), tower]
+        for target in route:
+            for point in _segment(cup, target, speed):
+                yield point, flags.copy()
+            cup = target
+        flags[block] = 0.0
+        for _ in range(dwell):
+            yield cup, flags.copy()
+
+
+def demonstrate(
+    scene: KukaScene, obs: np.ndarray, substeps: int, speed: float, safe_height: float, dwell: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Run one stacking demonstration from the scene's current state (``obs``); return the observations
+    ``[T + 1, 39]`` and the commands ``[T, 11]`` (joint targets, flags) executed between them."""
+    observations, commands = [obs], []
+    joints = obs[:N_JOINTS]
+    for cup, flags in stacking_commands(scene, obs, speed, safe_height, dwell):
+        joints = scene.inverse_kinematics(cup, joints)
+        observations.append(scene.command(joints, flags, substeps))
+        commands.append(np.concatenate([joints, flags]))
+    return np.asarray(observations), np.asarray(commands)
+
+
+def record_demonstration(simulator, rng: np.random.Generator, settings) -> np.ndarray:
+    """One demonstration from a protocol start drawn with ``rng``: the observations ``[T, 39]`` from the start to
+    ``rest_steps`` steps after the last release (the arm holding still)."""
+    d, c = settings.demonstrator, settings.control
+    obs = simulator.reset(rng)
+    observations, _ = demonstrate(simulator.scene, obs, c.substeps, d.speed, d.safe_height, d.dwell)
+    rest = [simulator.scene.command(observations[-1][:N_JOINTS], np.zeros(N_BLOCKS), c.substeps)]
+    for _ in range(d.rest_steps - 1):
+        rest.append(simulator.scene.command(observations[-1][:N_JOINTS], np.zeros(N_BLOCKS), c.substeps))
+    return np.concatenate([observations, np.asarray(rest).reshape(-1, observations.shape[1])])
+
+
+def collect_demonstrations(simulator, settings, env: str, progress: bool):
+    """The stacking dataset: ``collect.episodes`` demonstrations (episode ``i`` from the start drawn with
+    ``(collect.seed, i)``), state only (``act_dim`` 0); the reward of a step is the change in stacked blocks.
+    Returns the trajectories and the demonstrator's stacking figures."""
+    from tqdm import tqdm
+
+    from adaptdiffuser.data.schema import Trajectories, make_metadata
+    from adaptdiffuser.families.kuka.tasks import stacked_count
+
+    parts, counts = [], []
+    n = settings.collect.episodes
+    for i in tqdm(range(n), desc="stacking demonstrations", disable=not progress):
+        obs = record_demonstration(simulator, np.random.default_rng([settings.collect.seed, i]), settings)
+        count = np.array([stacked_count(o) for o in obs], dtype=np.float32)
+        reward = np.append(np.diff(count), np.float32(0.0))
+        parts.append((obs, reward))
+        counts.append(int(count[-1]))
+    lengths = [len(o) for o, _ in parts]
+    timeout = np.concatenate([np.arange(k) == k - 1 for k in lengths])
+    figures = {
+        "episodes": n,
+        "stacked_mean": float(np.mean(counts)),
+        "success_rate": float(np.mean(np.asarray(counts) == N_BLOCKS - 1)),
+        "length_mean": float(np.mean(lengths)),
+        "length_max": int(max(lengths)),
+    }
+    generator = {"kind": "scripted stacking demonstrator", **settings.demonstrator.model_dump(), **figures}
+    traj = Trajectories(
+        episode_id=np.repeat(np.arange(n), lengths),
+        step=np.concatenate([np.arange(k) for k in lengths]),
+        observation=np.concatenate([o for o, _ in parts]).astype(np.float32),
+        action=np.zeros((sum(lengths), 0), dtype=np.float32),
+        reward=np.concatenate([r for _, r in parts]),
+        terminal=np.zeros(sum(lengths), dtype=bool),
+        timeout=timeout,
+        metadata=make_metadata(env, simulator.obs_dim, 0, "expert", generator),
+    )
+    return traj, figures
+
+
+class DemonstratorController(Controller):
+    """The scripted stacking demonstrator on each environment (the expert reference); it holds still when done."""
+
+    def __init__(self, speed: float, safe_height: float, dwell: int) -> None:
+        self.speed, self.safe_height, self.dwell = speed, safe_height, dwell
+
+    def begin(self, envs, obs, episodes):
+        self.scripts = [
+            stacking_commands(env.scene, o, self.speed, self.safe_height, self.dwell)
+            for env, o in zip(envs, obs, strict=True)
+        ]
+        self.last = [(o[:N_JOINTS].copy(), np.zeros(N_BLOCKS)) for o in obs]
+
+    def act(self, envs, obs, t):
+        actions = []
+        for i, (env, script) in enumerate(zip(envs, self.scripts, strict=True)):
+            joints, flags = self.last[i]
+            waypoint = next(script, None)
+            if waypoint is not None:
+                cup, flags = waypoint
+                joints = env.scene.inverse_kinematics(cup, joints)
+            self.last[i] = (joints, flags)
+            actions.append(np.concatenate([joints, flags]))
+        return np.asarray(actions)

@@ -1,0 +1,168 @@
+"""KUKA's evolution phases (the reference's recipe). Generation: pick-and-place episodes from random starts of both
+setups, each a chain of open-loop plans from phase k-1's model guided toward the targets and executed in the
+simulator, so each plan starts where the last one ended; the file holds the planned state of every step.
+Discrimination: the plans are executed again from the same start; an episode whose executed joints and suction
+flags ever leave the planned ones by more than ``max_error`` (L2; the reference: 1.02) is rejected (its reward
+zeroed), and the rest are selected by the blocks placed (the paper: reward > 1.5, at least two of four)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from adaptdiffuser.config import DiscriminateParams, GenerateParams, TaskParams
+from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
+from adaptdiffuser.evaluation import run_episodes
+from adaptdiffuser.evolution.discriminator import (
+    Judgement,
+    SelectionRule,
+    TrackedTrajectory,
+    generic_selection_rule,
+    select,
+)
+from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance, plan_commands
+from adaptdiffuser.families.kuka.simulator import KukaSimulator
+from adaptdiffuser.seeding import derive_seed
+
+SETUP_COLUMN = "pick_place_setup"
+#: the paper's KUKA rule: keep an episode that placed more than this many blocks
+PAPER_MIN_PLACED = 1.5
+
+
+@dataclass(frozen=True)
+class MinReturnRule:
+    """Keep returns above ``threshold``, best first."""
+
+    threshold: float
+
+    def select(self, returns: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        returns = np.asarray(returns, dtype=np.float64)
+        keep = np.flatnonzero(returns > self.threshold)
+        return keep[np.argsort(-returns[keep], kind="stable")]
+
+
+def selection_rule(cfg: DiscriminateParams) -> SelectionRule:
+    """``paper``: more than 1.5 blocks placed; else the generic rule ``cfg.rule`` names."""
+    return MinReturnRule(PAPER_MIN_PLACED) if cfg.rule == "paper" else generic_selection_rule(cfg)
+
+
+def setup_of_tasks(n: int, setups: list[int]) -> np.ndarray:
+    """The pick-and-place setup of each of ``n`` generated tasks: equal contiguous shares of ``setups``."""
+    return np.asarray(setups)[np.arange(n) * len(setups) // n]
+
+
+def generate_episodes(
+    make_simulator: Any,
+    task: TaskParams,
+    planner: Any,
+    cfg: GenerateParams,
+    seed: int,
+    generator: dict[str, Any],
+    progress: bool,
+) -> tuple[Trajectories, dict[str, float]]:
+    """``cfg.tasks`` guided pick-and-place episodes (task ``i`` starts from the scene drawn with ``(seed, i)`` in
+    setup :func:`setup_of_tasks`), batched by ``cfg.batch_size``. Row ``t`` of an episode is the state planned for
+    step ``t`` (row 0: the start); the reward column is zero (unknown until executed)."""
+    p = task.settings.pick_place
+    first = int(p.guide_from * planner.horizon)
+    setups = setup_of_tasks(cfg.tasks, p.setups)
+    plans: list[np.ndarray] = []
+    placed: list[float] = []
+    for setup in p.setups:
+        tasks = np.flatnonzero(setups == setup)
+        if not len(tasks):
+            continue
+        guidance = place_guidance(planner, p.alpha, first)
+        controller = ReplanningController(planner, derive_seed(seed, setup), guidance, record=True)
+        offset = int(tasks[0])
+        result = run_episodes(
+            lambda setup=setup: make_simulator(task, "pick_place", setup),
+            controller,
+            len(tasks),
+            seed,
+            cfg.batch_size,
+            desc=f"generate setup {setup}",
+            progress=progress,
+            reset=lambda env, k, offset=offset: env.reset(np.random.default_rng([seed, offset + k])),
+        )
+        plans.extend(controller.recorded)
+        placed.extend(result.returns)
+    lengths = [len(x) for x in plans]
+    n_rows = sum(lengths)
+    traj = Trajectories(
+        episode_id=np.repeat(np.arange(cfg.tasks), lengths),
+        step=np.concatenate([np.arange(k) for k in lengths]),
+        observation=np.concatenate(plans).astype(np.float32),
+        action=np.zeros((n_rows, 0), dtype=np.float32),
+        reward=np.zeros(n_rows, dtype=np.float32),
+        terminal=np.zeros(n_rows, dtype=bool),
+        timeout=np.concatenate([np.arange(k) == k - 1 for k in lengths]),
+        metadata=make_metadata(task.name, KukaSimulator.obs_dim, 0, "synthetic", generator),
+        extra={"task_id": np.repeat(np.arange(cfg.tasks), lengths), SETUP_COLUMN: np.repeat(setups, lengths)},
+    )
+    return traj, {"generated": cfg.tasks, "placed_mean_while_generating": float(np.mean(placed))}
+
+
+def execute_plan(sim: KukaSimulator, planned: np.ndarray) -> TrackedTrajectory:
+    """Execute planned states ``[T + 1, 39]`` open loop from ``planned[0]``: the executed observations, the L2
+    distance of each executed state's joints and flags from the planned ones, and the reward of each step (the
+    change in blocks placed; the first entry, for the start, is 0)."""
+    obs = sim.set_state(planned[0])
+    observations, errors, rewards = [obs], [], [0.0]
+    commands = plan_commands(planned)
+    for t in range(1, len(planned)):
+        step = sim.step(commands[t])
+        observations.append(step.observation)
+        errors.append(float(np.linalg.norm(plan_commands(step.observation) - commands[t])))
+        rewards.append(step.reward)
+    return TrackedTrajectory(
+        observations=np.asarray(observations),
+        actions=np.zeros((len(observations), 0)),
+        errors=np.asarray(errors, dtype=np.float64),
+        rewards=np.asarray(rewards, dtype=np.float64),
+        steps_to_goal=-1,
+    )
+
+
+def judge_episodes(
+    make_simulator: Any, task: TaskParams, generated: Trajectories, cfg: DiscriminateParams, progress: bool
+) -> Judgement:
+    """Execute every generated episode in its setup's simulator; reject those whose joints or flags leave the plan
+    by more than ``cfg.max_error``; select the rest by blocks placed with the rule ``cfg.rule`` names."""
+    if SETUP_COLUMN not in generated.extra:
+        raise SchemaError(f"generated KUKA file lacks column {SETUP_COLUMN!r}")
+    if not cfg.tracking:
+        raise ValueError("KUKA plans are judged by executing them: evolution.discriminate.tracking must be true")
+    sims: dict[int, KukaSimulator] = {}
+    judged = []
+    for episode in tqdm(generated.episodes(), desc="discriminate", disable=not progress, mininterval=2.0):
+        setup = int(generated.extra[SETUP_COLUMN][episode.start])
+        if setup not in sims:
+            sims[setup] = make_simulator(task, "pick_place", setup)
+        judged.append(execute_plan(sims[setup], generated.observation[episode].astype(np.float64)))
+    for sim in sims.values():
+        sim.close()
+    passed = np.array([t.max_error <= cfg.max_error for t in judged], dtype=bool)
+    kept = select(judged, np.flatnonzero(passed), selection_rule(cfg))
+    return Judgement(trajectories=judged, passed_tracking=passed, kept=kept)
+
+
+def selected_episodes(task: TaskParams, judgement: Judgement, generator: dict[str, Any]) -> Trajectories:
+    """The kept executed episodes (states only) with their real rewards (the stage never asks with none kept)."""
+    kept = [judgement.trajectories[i] for i in judgement.kept]
+    lengths = [len(t.observations) for t in kept]
+    n = sum(lengths)
+    return Trajectories(
+        episode_id=np.repeat(np.arange(len(kept)), lengths),
+        step=np.concatenate([np.arange(k) for k in lengths]),
+        observation=np.concatenate([t.observations for t in kept]).astype(np.float32),
+        action=np.zeros((n, 0), dtype=np.float32),
+        reward=np.concatenate([t.rewards for t in kept]).astype(np.float32),
+        terminal=np.zeros(n, dtype=bool),
+        timeout=np.concatenate([np.arange(k) == k - 1 for k in lengths]),
+        metadata=make_metadata(task.name, KukaSimulator.obs_dim, 0, "synthetic", generator),
+        extra={"task_id": np.repeat(np.asarray(judgement.kept, dtype=np.int64), lengths)},
+    )

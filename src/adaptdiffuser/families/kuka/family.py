@@ -1,0 +1,153 @@
+"""The KUKA family as the generic pipeline sees it (registered in ``families/registry.py``): the model learns block
+stacking from the scripted demonstrator's states; stacking is evaluated as the task's score and pick-and-place (the
+unseen task, guided) beside it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from adaptdiffuser.config import TaskParams
+from adaptdiffuser.data.schema import Trajectories
+from adaptdiffuser.evaluation import (
+    Controller,
+    EpisodeBatchResult,
+    RandomController,
+    normalized_score,
+    run_episodes,
+    standard_error,
+)
+from adaptdiffuser.families.base import Family, TaskFiles
+from adaptdiffuser.families.kuka.scene import N_BLOCKS
+from adaptdiffuser.families.kuka.simulator import KukaSimulator
+
+#: pick-and-place setups: 1 = blocks scattered on the floor, 2 = blocks start in one tower (the paper's two)
+SETUP_LAYOUTS = {1: "scattered", 2: "tower"}
+
+
+def episode_steps(task: TaskParams, replans: int) -> int:
+    """An episode is ``replans`` open-loop plans of the horizon (each plan's first state is the current one)."""
+    return replans * (task.diffusion.horizon - 1)
+
+
+class KukaFamily(Family):
+    """A KUKA iiwa arm with a suction cup and four blocks (PyBullet); plans are 39-d states (no actions), executed
+    open loop by position control and replanned a few times per episode."""
+
+    name = "kuka"
+    conditioning = "start"
+    normalizer_kind = "minmax"
+
+    def make_simulator(self, task: TaskParams, kind: str = "stacking", setup: int = 1) -> KukaSimulator:
+        """The simulator of stacking (the task's score) or of pick-and-place setup ``setup``."""
+        s = task.settings
+        replans = s.pick_place.replans if kind == "pick_place" else s.replans
+        return KukaSimulator(s, kind, SETUP_LAYOUTS[setup], episode_steps(task, replans))
+
+    def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
+        """Scripted stacking demonstrations; the demonstrator's own figures go to ``demonstrator.json``."""
+        from adaptdiffuser.families.kuka.demonstrator import collect_demonstrations
+        from adaptdiffuser.io import write_json
+
+        traj, figures = collect_demonstrations(self.make_simulator(task), task.settings, task.name, progress)
+        write_json(files.collect / "demonstrator.json", figures)
+        return traj
+
+    def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
+        """Score 0 = nothing stacked, 100 = the full tower (3 blocks on others); beside it, on the evaluation seeds,
+        the scripted demonstrator and uniformly random joint targets and suction flags."""
+        from adaptdiffuser.families.kuka.demonstrator import DemonstratorController
+
+        ev, d = task.evaluate, task.settings.demonstrator
+        ref: dict[str, Any] = {"r_min": 0.0, "r_max": float(N_BLOCKS - 1), "n_episodes": ev.episodes}
+        controllers = {
+            "demonstrator": DemonstratorController(d.speed, d.safe_height, d.dwell),
+            "random": RandomController(ev.seed),
+        }
+        for who, controller in controllers.items():
+            result = run_episodes(
+                lambda: self.make_simulator(task),
+                controller,
+                ev.episodes,
+                ev.seed,
+                ev.batch_size,
+                desc=f"reference {who}",
+                progress=progress,
+            )
+            scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
+            ref[f"{who}_score_mean"] = float(np.mean(scores))
+            ref[f"{who}_score_stderr"] = standard_error(scores)
+        return ref
+
+    def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
+        """Open-loop plans of the horizon, ``replans`` per episode."""
+        from adaptdiffuser.families.kuka.execution import ReplanningController
+
+        return ReplanningController(planner, task.evaluate.seed)
+
+    def extra_evaluations(self, task: TaskParams, planner: Any, progress: bool) -> dict[str, float]:
+        """Pick-and-place (unseen) for each setup, guided with ``pick_place.alpha``: score = blocks placed / 4 x 100."""
+        from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance
+
+        p = task.settings.pick_place
+        first = int(p.guide_from * planner.horizon)
+        metrics: dict[str, float] = {}
+        for setup in p.setups:
+            controller = ReplanningController(planner, p.seed, place_guidance(planner, p.alpha, first))
+            result = run_episodes(
+                lambda setup=setup: self.make_simulator(task, "pick_place", setup),
+                controller,
+                p.episodes,
+                p.seed,
+                p.batch_size,
+                desc=f"pick-and-place setup {setup}",
+                progress=progress,
+            )
+            scores = normalized_score(np.asarray(result.returns), 0.0, float(N_BLOCKS))
+            metrics[f"pick_place_setup{setup}_score_mean"] = float(np.mean(scores))
+            metrics[f"pick_place_setup{setup}_score_stderr"] = standard_error(scores)
+        return metrics
+
+    def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
+        """Guided pick-and-place episodes from both setups (scale ``pick_place.alpha``, the evaluation's; the
+        top-level ``alpha`` guides maze coins only)."""
+        from adaptdiffuser.families.kuka.evolution import generate_episodes
+
+        return generate_episodes(self.make_simulator, task, planner, cfg, seed, generator, progress)
+
+    def discriminate(self, task, generated, cfg, phase, files, progress):
+        """Execute each episode's plans; reject drift of joints and flags; select by blocks placed."""
+        from adaptdiffuser.families.kuka.evolution import judge_episodes
+
+        return judge_episodes(self.make_simulator, task, generated, cfg, progress)
+
+    def selected_data(self, task, generated, judgement, generator):
+        from adaptdiffuser.families.kuka.evolution import selected_episodes
+
+        return selected_episodes(task, judgement, generator)
+
+    def episode_metrics(self, result: EpisodeBatchResult) -> dict[str, float]:
+        full = np.asarray(result.returns) >= N_BLOCKS - 1
+        return {"full_tower_rate": float(np.mean(full))}
+
+    def save_picture(
+        self, task: TaskParams, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None
+    ) -> None:
+        """The final scene (rebuilt at the last executed state and rendered) and the blocks' heights."""
+        from adaptdiffuser.families.kuka.pictures import save_episode_picture
+
+        sim = self.make_simulator(task)
+        sim.set_state(executed[-1])
+        save_episode_picture(path, sim.render(), executed, plan, title)
+        sim.close()
+
+    def describe(self, task: TaskParams) -> dict[str, Any]:
+        return {
+            "simulator": "pybullet kuka_iiwa, 4 blocks, suction",
+            "stacking_episode_steps": episode_steps(task, task.settings.replans),
+        }
+
+
+FAMILY = KukaFamily

@@ -1,0 +1,123 @@
+"""The settings of a KUKA task (``task.<name>`` with ``family: kuka``): the scene, position control and suction, the
+scripted stacking demonstrator, and the two evaluations (stacking, seen; pick-and-place, unseen). Light to import
+(no PyBullet)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from adaptdiffuser.config.errors import ConfigError
+
+if TYPE_CHECKING:
+    from adaptdiffuser.config.params import Params
+    from adaptdiffuser.config.tasks import TaskParams
+
+#: task names of the family: the model learns stacking; pick-and-place is evaluated beside it
+TASK_NAMES = ("kuka-stacking",)
+Frozen = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+class SceneSettings(BaseModel):
+    """Where episodes start."""
+
+    model_config = Frozen
+
+    #: blocks are placed at random in this ring around the arm's base (metres)
+    radius: Annotated[list[Annotated[float, Field(gt=0)]], Field(min_length=2, max_length=2)] = [0.35, 0.6]
+    #: smallest distance between two blocks' centres at the start (0.2 x 0.2 blocks: >= 0.29 never overlap)
+    min_gap: float = Field(0.3, ge=0)
+    #: the arm starts at its home configuration + U(-noise, noise) per joint (radians)
+    home_noise: float = Field(0.05, ge=0)
+    #: pick-and-place starts keep the blocks at x <= this, away from the targets at x = 0.5
+    pick_place_max_x: float = 0.1
+
+    @field_validator("radius")
+    @classmethod
+    def _ring(cls, radius: list[float]) -> list[float]:
+        if radius[0] >= radius[1]:
+            raise ValueError(f"radius must be [inner, outer] with inner < outer, got {radius}")
+        return radius
+
+
+class ControlSettings(BaseModel):
+    """How a planned configuration is executed."""
+
+    model_config = Frozen
+
+    #: physics steps (1/240 s each) per plan step (the reference: 10-20)
+    substeps: int = Field(10, gt=0)
+    position_gain: float = Field(0.3, gt=0)
+    joint_force: float = Field(300.0, gt=0)
+    #: the cup takes a block only when the block's top is within this distance of it (metres)
+    suction_reach: float = Field(0.1, gt=0)
+
+
+class DemonstratorSettings(BaseModel):
+    """The scripted stacking demonstrator (the seen task's expert data)."""
+
+    model_config = Frozen
+
+    #: cup travel per plan step (metres); 0.04 = about 1 m/s at 10 substeps
+    speed: float = Field(0.04, gt=0)
+    #: carrying height of the cup (metres), raised above a growing tower
+    safe_height: float = Field(0.35, gt=0)
+    #: plan steps waited after attaching and after releasing
+    dwell: int = Field(4, ge=0)
+    #: plan steps recorded at rest after the last block, so plans learn to stay
+    rest_steps: int = Field(20, ge=0)
+
+
+class CollectSettings(BaseModel):
+    model_config = Frozen
+
+    episodes: int = Field(300, gt=0)
+    seed: int = Field(0, ge=0)
+
+
+class PickPlaceSettings(BaseModel):
+    """The unseen task: block i to target (0.5, y_i) with y = -0.8, -0.3, 0.3, 0.8, no demonstrations; the planner is
+    guided toward the target of one block per replan."""
+
+    model_config = Frozen
+
+    #: the paper's setups: 1 = blocks scattered on the floor, 2 = blocks start in one tower
+    setups: list[Literal[1, 2]] = Field(default_factory=lambda: [1, 2], min_length=1)
+    #: plans per episode (the reference: 4, one block each)
+    replans: int = Field(4, gt=0)
+    episodes: int = Field(20, gt=0)
+    seed: int = Field(3000, ge=0)
+    #: guidance scale toward the targets (the task's own: its objective is in metres, the maze coin's in cells)
+    alpha: float = Field(10.0, ge=0)
+    #: the guidance pulls the chosen block over plan steps from this fraction of the horizon on (reference: half)
+    guide_from: float = Field(0.5, ge=0, lt=1)
+    batch_size: int = Field(20, gt=0)
+
+
+class KukaTaskParams(BaseModel):
+    """The KUKA iiwa arm with a suction cup and four blocks on PyBullet: ``kuka-stacking``."""
+
+    model_config = Frozen
+    OPTIONAL_STAGES: ClassVar[tuple[str, ...]] = ("evolve",)
+
+    family: Literal["kuka"] = "kuka"
+    scene: SceneSettings = Field(default_factory=SceneSettings)
+    control: ControlSettings = Field(default_factory=ControlSettings)
+    demonstrator: DemonstratorSettings = Field(default_factory=DemonstratorSettings)
+    collect: CollectSettings = Field(default_factory=CollectSettings)
+    #: stacking episodes: this many open-loop plans of the horizon, each from where the last one ended
+    replans: int = Field(3, gt=0)
+    pick_place: PickPlaceSettings = Field(default_factory=PickPlaceSettings)
+
+    def check_name(self, name: str) -> None:
+        if name not in TASK_NAMES:
+            raise ConfigError(f"task.{name}: KUKA tasks are named {list(TASK_NAMES)}")
+
+    def check(self, task: TaskParams, params: Params) -> None:
+        """Plans that condition on the start only, at least two steps long."""
+        if task.diffusion.horizon < 2:
+            raise ConfigError(f"task.{task.name}.diffusion.horizon: KUKA plans need at least 2 steps")
+
+
+TASK_PARAMS = KukaTaskParams
