@@ -98,6 +98,7 @@ def test_profile_list() -> None:
         "smoke",
         "quick-locomotion",
         "quick-kuka",
+        "paper-kuka",
         "paper-locomotion",
         "science",
         *PAPER,
@@ -143,6 +144,10 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert params.tasks == ("kuka-stacking",) and params.coin_tasks == () and params.evolve is None
         kuka = params.resolve("kuka-stacking")
         assert kuka.family == "kuka" and kuka.diffusion.horizon == 128 and kuka.settings.replans == 3
+    if profile == "paper-kuka":
+        kuka = params.resolve("kuka-stacking")
+        assert kuka.settings.collect.episodes == 10000 and kuka.model.dim == 128 and kuka.diffusion.n_steps == 1000
+        assert params.evolve == "kuka-stacking" and params.phase(1).discriminate.max_error == 1.02
     if profile == "paper-locomotion":
         assert len(params.tasks) == 9 and params.coin_tasks == () and params.evolve == "hopper-medium"
         assert params.phase_names == ["phase1", "phase2"] and params.phase(1).discriminate.rule == "paper"
@@ -622,6 +627,15 @@ def test_a_locomotion_task_with_phases_describes_its_coin_stages(tmp_path: Path)
     lines = describe(p)
     assert "  evaluate-coin@phase1: skipped (hopper-medium has no gold-coin task)" in lines
     assert p.evolve == "hopper-medium" and p.phase(2).discriminate.rule == "paper"
+
+
+def test_the_kuka_profiles_describe_their_data_and_phases(tmp_path: Path) -> None:
+    """``check`` on the KUKA profiles: the collect line is the family's own; evolution phases on the paper profile."""
+    lines = describe(apply_and_load("quick-kuka", tmp_path))
+    assert "  collect@kuka-stacking: 300 scripted stacking demonstrations (seed 0)" in lines
+    lines = describe(apply_and_load("paper-kuka", tmp_path))
+    assert "  discriminate@phase1: paper thresholds, tracking error <= 1.02" in lines
+    assert "  evaluate-coin@phase2: skipped (kuka-stacking has no gold-coin task)" in lines
 
 
 def test_science_profile_runs_both_tasks_on_three_seeds(tmp_path: Path) -> None:

@@ -82,11 +82,8 @@ def describe(params: Params) -> list[str]:
 
 
 def _data(task: TaskParams) -> str:
-    settings = task.settings
-    if hasattr(settings, "collect"):
-        return f"{settings.collect.steps} expert steps (seed {settings.collect.seed})"
-    b = settings.behaviour
-    return f"{b.algorithm} behaviour policy to score {b.medium_score:g}, {b.dataset_steps} dataset steps per part"
+    """The family's own line for its collect stage (``describe_data`` of its task settings)."""
+    return task.settings.describe_data()
 
 
 def _planner(task: TaskParams) -> str:

@@ -110,6 +110,10 @@ class KukaTaskParams(BaseModel):
     replans: int = Field(3, gt=0)
     pick_place: PickPlaceSettings = Field(default_factory=PickPlaceSettings)
 
+    def describe_data(self) -> str:
+        """The collect stage's recipe, one line (``adaptdiffuser check``)."""
+        return f"{self.collect.episodes} scripted stacking demonstrations (seed {self.collect.seed})"
+
     def check_name(self, name: str) -> None:
         if name not in TASK_NAMES:
             raise ConfigError(f"task.{name}: KUKA tasks are named {list(TASK_NAMES)}")

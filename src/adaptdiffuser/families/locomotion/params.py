@@ -132,6 +132,11 @@ class LocomotionTaskParams(BaseModel):
     guide: PlannerSettings = Field(default_factory=PlannerSettings)
     evolution: EvolutionSettings = Field(default_factory=EvolutionSettings)
 
+    def describe_data(self) -> str:
+        """The collect stage's recipe, one line (``adaptdiffuser check``)."""
+        b = self.behaviour
+        return f"{b.algorithm} behaviour policy to score {b.medium_score:g}, {b.dataset_steps} dataset steps per part"
+
     def check_name(self, name: str) -> None:
         """The name says the robot and the dataset, like ``walker2d-medium-replay``."""
         try:

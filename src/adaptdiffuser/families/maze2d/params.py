@@ -114,6 +114,10 @@ class Maze2DTaskParams:
     gold_coin: GoldCoinParams = field(default_factory=GoldCoinParams)
     evolution: EvolutionSettings = field(default_factory=EvolutionSettings)
 
+    def describe_data(self) -> str:
+        """The collect stage's recipe, one line (``adaptdiffuser check``)."""
+        return f"{self.collect.steps} expert steps (seed {self.collect.seed})"
+
     @property
     def maze_name(self) -> str:
         return self.env.maze if self.env.layout is None else "custom"
