@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from adaptdiffuser.config import DiscriminateParams, load_params
-from adaptdiffuser.data.schema import Trajectories, make_metadata, read_trajectories, write_trajectories
+from adaptdiffuser.data.schema import Trajectories, read_trajectories, write_trajectories
 from adaptdiffuser.evaluation import run_episodes
+from adaptdiffuser.families.kuka.dataset import state_episodes
 from adaptdiffuser.families.kuka.demonstrator import (
     DemonstratorController,
     collect_demonstrations,
@@ -192,19 +193,7 @@ def test_kuka_settings_are_checked() -> None:
 
 
 def _as_generated(plans: list[np.ndarray]) -> Trajectories:
-    lengths = [len(p) for p in plans]
-    n = sum(lengths)
-    return Trajectories(
-        episode_id=np.repeat(np.arange(len(plans)), lengths),
-        step=np.concatenate([np.arange(k) for k in lengths]),
-        observation=np.concatenate(plans).astype(np.float32),
-        action=np.zeros((n, 0), dtype=np.float32),
-        reward=np.zeros(n, dtype=np.float32),
-        terminal=np.zeros(n, dtype=bool),
-        timeout=np.concatenate([np.arange(k) == k - 1 for k in lengths]),
-        metadata=make_metadata("kuka-stacking", OBS_DIM, 0, "synthetic", {}),
-        extra={SETUP_COLUMN: np.ones(n, dtype=np.int64)},
-    )
+    return state_episodes(plans, "kuka-stacking", "synthetic", {}, per_episode={SETUP_COLUMN: np.ones(len(plans))})
 
 
 def test_discriminator_executes_plans_and_rejects_what_the_simulator_cannot_do() -> None:

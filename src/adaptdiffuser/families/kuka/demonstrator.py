@@ -40,26 +40,14 @@ def stacking_commands(
         top = pos[block] + np.array([0.0, 0.0, BLOCK_HALF[2] + 0.005])
         tower = pos[block - 1] + np.array([0.0, 0.0, BLOCK_HALF[2] + 2 * BLOCK_HALF[2] + 0.01])
         height = max(safe_height, tower[2] + 0.15)
-        route = [
-            np.array([cup[0], cup[1], height]),
-            np.array([top[0], top[1], height]),
-            top,
-        ]
-        for target in route:
-            for point in _segment(cup, target, speed):
-                yield point, flags.copy()
-            cup = target
-        flags[block] = 1.0
-        for _ in range(dwell):
-            yield cup, flags.copy()
-        route = [np.array([cup[0], cup[1], height]), np.array([tower[0], tower[1], height]), tower]
-        for target in route:
-            for point in _segment(cup, target, speed):
-                yield point, flags.copy()
-            cup = target
-        flags[block] = 0.0
-        for _ in range(dwell):
-            yield cup, flags.copy()
+        for goal, flag in ((top, 1.0), (tower, 0.0)):  # fetch the block, then put it on the tower
+            for target in (np.array([cup[0], cup[1], height]), np.array([goal[0], goal[1], height]), goal):
+                for point in _segment(cup, target, speed):
+                    yield point, flags.copy()
+                cup = target
+            flags[block] = flag
+            for _ in range(dwell):
+                yield cup, flags.copy()
 
 
 def demonstrate(
@@ -94,19 +82,18 @@ def collect_demonstrations(simulator, settings, env: str, progress: bool):
     Returns the trajectories and the demonstrator's stacking figures."""
     from tqdm import tqdm
 
-    from adaptdiffuser.data.schema import Trajectories, make_metadata
+    from adaptdiffuser.families.kuka.dataset import state_episodes
     from adaptdiffuser.families.kuka.tasks import stacked_count
 
-    parts, counts = [], []
+    episodes, rewards, counts = [], [], []
     n = settings.collect.episodes
     for i in tqdm(range(n), desc="stacking demonstrations", disable=not progress):
         obs = record_demonstration(simulator, np.random.default_rng([settings.collect.seed, i]), settings)
         count = np.array([stacked_count(o) for o in obs], dtype=np.float32)
-        reward = np.append(np.diff(count), np.float32(0.0))
-        parts.append((obs, reward))
+        episodes.append(obs)
+        rewards.append(np.append(np.diff(count), np.float32(0.0)))
         counts.append(int(count[-1]))
-    lengths = [len(o) for o, _ in parts]
-    timeout = np.concatenate([np.arange(k) == k - 1 for k in lengths])
+    lengths = [len(o) for o in episodes]
     figures = {
         "episodes": n,
         "stacked_mean": float(np.mean(counts)),
@@ -115,17 +102,7 @@ def collect_demonstrations(simulator, settings, env: str, progress: bool):
         "length_max": int(max(lengths)),
     }
     generator = {"kind": "scripted stacking demonstrator", **settings.demonstrator.model_dump(), **figures}
-    traj = Trajectories(
-        episode_id=np.repeat(np.arange(n), lengths),
-        step=np.concatenate([np.arange(k) for k in lengths]),
-        observation=np.concatenate([o for o, _ in parts]).astype(np.float32),
-        action=np.zeros((sum(lengths), 0), dtype=np.float32),
-        reward=np.concatenate([r for _, r in parts]),
-        terminal=np.zeros(sum(lengths), dtype=bool),
-        timeout=timeout,
-        metadata=make_metadata(env, simulator.obs_dim, 0, "expert", generator),
-    )
-    return traj, figures
+    return state_episodes(episodes, env, "expert", generator, rewards=rewards), figures
 
 
 class DemonstratorController(Controller):

@@ -14,7 +14,7 @@ import numpy as np
 from tqdm import tqdm
 
 from adaptdiffuser.config import DiscriminateParams, GenerateParams, TaskParams
-from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
+from adaptdiffuser.data.schema import SchemaError, Trajectories
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.evolution.discriminator import (
     Judgement,
@@ -23,6 +23,7 @@ from adaptdiffuser.evolution.discriminator import (
     generic_selection_rule,
     select,
 )
+from adaptdiffuser.families.kuka.dataset import state_episodes
 from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance, plan_commands
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 from adaptdiffuser.seeding import derive_seed
@@ -90,19 +91,8 @@ def generate_episodes(
         )
         plans.extend(controller.recorded)
         placed.extend(result.returns)
-    lengths = [len(x) for x in plans]
-    n_rows = sum(lengths)
-    traj = Trajectories(
-        episode_id=np.repeat(np.arange(cfg.tasks), lengths),
-        step=np.concatenate([np.arange(k) for k in lengths]),
-        observation=np.concatenate(plans).astype(np.float32),
-        action=np.zeros((n_rows, 0), dtype=np.float32),
-        reward=np.zeros(n_rows, dtype=np.float32),
-        terminal=np.zeros(n_rows, dtype=bool),
-        timeout=np.concatenate([np.arange(k) == k - 1 for k in lengths]),
-        metadata=make_metadata(task.name, KukaSimulator.obs_dim, 0, "synthetic", generator),
-        extra={"task_id": np.repeat(np.arange(cfg.tasks), lengths), SETUP_COLUMN: np.repeat(setups, lengths)},
-    )
+    columns = {"task_id": np.arange(cfg.tasks), SETUP_COLUMN: setups}
+    traj = state_episodes(plans, task.name, "synthetic", generator, per_episode=columns)
     return traj, {"generated": cfg.tasks, "placed_mean_while_generating": float(np.mean(placed))}
 
 
@@ -153,16 +143,11 @@ def judge_episodes(
 def selected_episodes(task: TaskParams, judgement: Judgement, generator: dict[str, Any]) -> Trajectories:
     """The kept executed episodes (states only) with their real rewards (the stage never asks with none kept)."""
     kept = [judgement.trajectories[i] for i in judgement.kept]
-    lengths = [len(t.observations) for t in kept]
-    n = sum(lengths)
-    return Trajectories(
-        episode_id=np.repeat(np.arange(len(kept)), lengths),
-        step=np.concatenate([np.arange(k) for k in lengths]),
-        observation=np.concatenate([t.observations for t in kept]).astype(np.float32),
-        action=np.zeros((n, 0), dtype=np.float32),
-        reward=np.concatenate([t.rewards for t in kept]).astype(np.float32),
-        terminal=np.zeros(n, dtype=bool),
-        timeout=np.concatenate([np.arange(k) == k - 1 for k in lengths]),
-        metadata=make_metadata(task.name, KukaSimulator.obs_dim, 0, "synthetic", generator),
-        extra={"task_id": np.repeat(np.asarray(judgement.kept, dtype=np.int64), lengths)},
+    return state_episodes(
+        [t.observations for t in kept],
+        task.name,
+        "synthetic",
+        generator,
+        rewards=[t.rewards for t in kept],
+        per_episode={"task_id": np.asarray(judgement.kept, dtype=np.int64)},
     )
