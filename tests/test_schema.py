@@ -168,13 +168,40 @@ def test_wrong_schema_version_is_rejected(valid_file: Path, tmp_path: Path) -> N
         read_trajectories(path)
 
 
-@pytest.mark.parametrize(("key", "value"), [("source", "dreamed"), ("obs_dim", 0), ("act_dim", "2")])
+@pytest.mark.parametrize(("key", "value"), [("source", "dreamed"), ("obs_dim", 0), ("act_dim", "2"), ("act_dim", -1)])
 def test_invalid_metadata_values_are_rejected(valid_file: Path, tmp_path: Path, key: str, value: object) -> None:
     meta = dict(read_trajectories(valid_file).metadata, **{key: value})
     path = tmp_path / "bad.parquet"
     write_raw(path, pq.read_table(valid_file), meta)
     with pytest.raises(SchemaError, match=key):
         read_trajectories(path)
+
+
+def test_state_only_files_round_trip_and_refuse_actions(tmp_path: Path) -> None:
+    """``act_dim`` 0 (plans of states only, like KUKA's): the action column holds empty lists; a file whose action
+    lists hold values while its metadata says 0 is refused, naming the column."""
+    n = 5
+    traj = Trajectories(
+        episode_id=np.zeros(n, dtype=np.int64),
+        step=np.arange(n),
+        observation=np.random.default_rng(0).normal(size=(n, OBS_DIM)),
+        action=np.zeros((n, 0)),
+        reward=np.zeros(n),
+        terminal=np.zeros(n, dtype=bool),
+        timeout=np.arange(n) == n - 1,
+        metadata=make_metadata("states", OBS_DIM, 0, "expert", {}),
+    )
+    path = tmp_path / "states.parquet"
+    write_trajectories(path, traj)
+    back = read_trajectories(path)
+    assert back.action.shape == (n, 0)
+    np.testing.assert_allclose(back.observation, traj.observation.astype(np.float32))
+    table = pq.read_table(path)
+    filled = pa.array([[1.0]] * n, type=pa.list_(pa.float32()))
+    bad = tmp_path / "bad.parquet"
+    write_raw(bad, table.set_column(table.schema.get_field_index("action"), "action", filled), back.metadata)
+    with pytest.raises(SchemaError, match="column 'action' holds 5 values for 5 rows of 0"):
+        read_trajectories(bad)
 
 
 @pytest.mark.parametrize("column", ["reward", "observation", "episode_id", "timeout"])

@@ -191,14 +191,14 @@ def read_trajectories(path: str | Path, env: str | None = None) -> Trajectories:
     traj = Trajectories(
         episode_id=table.column("episode_id").to_numpy(),
         step=table.column("step").to_numpy(),
-        observation=_fixed_list(table, "observation", n, meta["obs_dim"]),
-        action=_fixed_list(table, "action", n, meta["act_dim"]),
+        observation=_fixed_list(table, "observation", n, meta["obs_dim"], path),
+        action=_fixed_list(table, "action", n, meta["act_dim"], path),
         reward=table.column("reward").to_numpy(),
         terminal=table.column("terminal").to_numpy(zero_copy_only=False),
         timeout=table.column("timeout").to_numpy(zero_copy_only=False),
         metadata=meta,
         extra={name: _column_numpy(table, name) for name in table.column_names if name not in expected.names},
-        sim_state=_fixed_list(table, "sim_state", n, state_dim) if state_dim else None,
+        sim_state=_fixed_list(table, "sim_state", n, state_dim, path) if state_dim else None,
     )
     if n and np.any(np.diff(traj.episode_id) < 0):
         raise SchemaError(f"{path}: column 'episode_id' must be grouped in ascending order")
@@ -252,10 +252,10 @@ def _check_finite(traj: Trajectories, name: str, values: np.ndarray, path: Path)
     raise SchemaError(f"{path}: column {name!r} holds {flat[element]} at {where}; values must be finite")
 
 
-def _fixed_list(table: pa.Table, name: str, n: int, dim: int) -> np.ndarray:
+def _fixed_list(table: pa.Table, name: str, n: int, dim: int, path: Path) -> np.ndarray:
     flat = table.column(name).combine_chunks().flatten().to_numpy()
     if flat.size != n * dim:  # only variable-size lists (state-only actions) can disagree with the metadata
-        raise SchemaError(f"column {name!r} holds {flat.size} values for {n} rows of {dim} (metadata)")
+        raise SchemaError(f"{path}: column {name!r} holds {flat.size} values for {n} rows of {dim} (metadata)")
     return flat.reshape(n, dim)
 
 

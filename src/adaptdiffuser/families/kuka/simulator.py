@@ -7,7 +7,15 @@ from __future__ import annotations
 import numpy as np
 
 from adaptdiffuser.families.base import Simulator, Step
-from adaptdiffuser.families.kuka.scene import HOME_JOINTS, N_BLOCKS, N_JOINTS, OBS_DIM, KukaScene
+from adaptdiffuser.families.kuka.scene import (
+    FLAG_COLUMNS,
+    HOME_JOINTS,
+    N_BLOCKS,
+    N_JOINTS,
+    OBS_DIM,
+    KukaScene,
+    block_position_columns,
+)
 from adaptdiffuser.families.kuka.tasks import (
     placed_count,
     scattered_blocks,
@@ -73,10 +81,9 @@ class KukaSimulator(Simulator):
         """Rebuild the world at an observation (arm and blocks at rest; blocks whose flag is on re-attached when the
         cup reaches them)."""
         state = np.asarray(state, dtype=np.float64)
-        blocks = np.stack([state[N_JOINTS + 8 * i : N_JOINTS + 8 * i + 7] for i in range(N_BLOCKS)])
-        self.scene.build(state[:N_JOINTS], blocks)
-        flags = state[[N_JOINTS + 8 * i + 7 for i in range(N_BLOCKS)]]
-        self.scene.set_suction(flags)
+        starts = [block_position_columns(i).start for i in range(N_BLOCKS)]
+        self.scene.build(state[:N_JOINTS], np.stack([state[k : k + 7] for k in starts]))  # xyz + quaternion
+        self.scene.set_suction(state[list(FLAG_COLUMNS)])
         self.obs = self.scene.observation()
         return self.obs.copy()
 
