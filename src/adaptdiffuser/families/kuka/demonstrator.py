@@ -52,16 +52,15 @@ def stacking_commands(
 
 def demonstrate(
     scene: KukaScene, obs: np.ndarray, substeps: int, speed: float, safe_height: float, dwell: int
-) -> tuple[np.ndarray, np.ndarray]:
+) -> np.ndarray:
     """Run one stacking demonstration from the scene's current state (``obs``); return the observations
-    ``[T + 1, 39]`` and the commands ``[T, 11]`` (joint targets, flags) executed between them."""
-    observations, commands = [obs], []
+    ``[T + 1, 39]``."""
+    observations = [obs]
     joints = obs[:N_JOINTS]
     for cup, flags in stacking_commands(scene, obs, speed, safe_height, dwell):
         joints = scene.inverse_kinematics(cup, joints)
         observations.append(scene.command(joints, flags, substeps))
-        commands.append(np.concatenate([joints, flags]))
-    return np.asarray(observations), np.asarray(commands)
+    return np.asarray(observations)
 
 
 def record_demonstration(simulator, rng: np.random.Generator, settings) -> np.ndarray:
@@ -69,11 +68,10 @@ def record_demonstration(simulator, rng: np.random.Generator, settings) -> np.nd
     ``rest_steps`` steps after the last release (the arm holding still)."""
     d, c = settings.demonstrator, settings.control
     obs = simulator.reset(rng)
-    observations, _ = demonstrate(simulator.scene, obs, c.substeps, d.speed, d.safe_height, d.dwell)
-    rest = [simulator.scene.command(observations[-1][:N_JOINTS], np.zeros(N_BLOCKS), c.substeps)]
-    for _ in range(d.rest_steps - 1):
-        rest.append(simulator.scene.command(observations[-1][:N_JOINTS], np.zeros(N_BLOCKS), c.substeps))
-    return np.concatenate([observations, np.asarray(rest).reshape(-1, observations.shape[1])])
+    observations = demonstrate(simulator.scene, obs, c.substeps, d.speed, d.safe_height, d.dwell)
+    hold = observations[-1][:N_JOINTS]
+    rest = [simulator.scene.command(hold, np.zeros(N_BLOCKS), c.substeps) for _ in range(max(1, d.rest_steps))]
+    return np.concatenate([observations, rest])
 
 
 def collect_demonstrations(simulator, settings, env: str, progress: bool):

@@ -21,7 +21,7 @@ BLOCK_HALF = (0.1, 0.1, 0.03)
 #: per block: xyz (3), quaternion xyzw (4), attached flag (1)
 BLOCK_DIMS = 8
 OBS_DIM = N_JOINTS + N_BLOCKS * BLOCK_DIMS
-#: observation columns of block ``i``'s position and flag
+#: observation columns of the blocks' attached flags
 FLAG_COLUMNS = tuple(N_JOINTS + i * BLOCK_DIMS + 7 for i in range(N_BLOCKS))
 #: the arm's resting configuration (elbow up, the cup pointing down over the floor in front of the base)
 HOME_JOINTS = np.array([0.0, 0.35, 0.0, -1.55, 0.0, 1.25, 0.0])
@@ -91,7 +91,6 @@ class KukaScene:
             self.blocks.append(body)
         for j, q in enumerate(np.asarray(joints, dtype=np.float64)):
             c.resetJointState(self.robot, j, float(q))
-        self.targets = np.asarray(joints, dtype=np.float64).copy()
         self.constraints = [None] * N_BLOCKS
         return self.observation()
 
@@ -106,12 +105,19 @@ class KukaScene:
             obs[k + 7] = float(self.constraints[i] is not None)
         return obs
 
+    def _flange(self) -> tuple[np.ndarray, np.ndarray]:
+        """The flange's position and orientation (quaternion xyzw)."""
+        state = self.client.getLinkState(self.robot, N_JOINTS - 1, computeForwardKinematics=True)
+        return np.asarray(state[4]), np.asarray(state[5])
+
+    def _cup_of(self, flange_pos: np.ndarray, flange_quat: np.ndarray) -> np.ndarray:
+        axis = np.asarray(self.client.getMatrixFromQuaternion(flange_quat)).reshape(3, 3)[:, 2]
+        return flange_pos + CUP_OFFSET * axis
+
     def cup(self) -> tuple[np.ndarray, np.ndarray]:
         """The suction cup's position and the flange's orientation (quaternion xyzw)."""
-        state = self.client.getLinkState(self.robot, N_JOINTS - 1, computeForwardKinematics=True)
-        pos, quat = np.asarray(state[4]), np.asarray(state[5])
-        axis = np.asarray(self.client.getMatrixFromQuaternion(quat)).reshape(3, 3)[:, 2]
-        return pos + CUP_OFFSET * axis, quat
+        pos, quat = self._flange()
+        return self._cup_of(pos, quat), quat
 
     def set_suction(self, flags: np.ndarray) -> None:
         """Attach each block whose flag is > 0.5 (if not held yet and within reach of the cup), release the others.
@@ -124,9 +130,8 @@ class KukaScene:
                 self.constraints[i] = None
         if not want.any() or any(k is not None for k in self.constraints):
             return
-        cup, _ = self.cup()
-        state = c.getLinkState(self.robot, N_JOINTS - 1, computeForwardKinematics=True)
-        flange_pos, flange_quat = state[4], state[5]
+        flange_pos, flange_quat = self._flange()
+        cup = self._cup_of(flange_pos, flange_quat)
         best, best_dist = None, self.suction_reach
         for i in np.flatnonzero(want):
             pos, _ = c.getBasePositionAndOrientation(self.blocks[i])
@@ -137,7 +142,7 @@ class KukaScene:
         if best is None:
             return
         pos, quat = c.getBasePositionAndOrientation(self.blocks[best])
-        inv_pos, inv_quat = c.invertTransform(flange_pos, flange_quat)
+        inv_pos, inv_quat = c.invertTransform(flange_pos.tolist(), flange_quat.tolist())
         rel_pos, rel_quat = c.multiplyTransforms(inv_pos, inv_quat, pos, quat)
         self.constraints[best] = c.createConstraint(
             self.robot, N_JOINTS - 1, self.blocks[best], -1, pb.JOINT_FIXED, [0, 0, 0], rel_pos, [0, 0, 0], rel_quat
@@ -148,12 +153,11 @@ class KukaScene:
         """Position-control the joints toward ``joint_targets``, set the suction from ``flags``, simulate
         ``substeps`` steps; return the observation."""
         self.set_suction(flags)
-        self.targets = np.asarray(joint_targets, dtype=np.float64)
         self.client.setJointMotorControlArray(
             self.robot,
             list(range(N_JOINTS)),
             self.pb.POSITION_CONTROL,
-            targetPositions=self.targets.tolist(),
+            targetPositions=np.asarray(joint_targets, dtype=np.float64).tolist(),
             forces=[self.joint_force] * N_JOINTS,
             positionGains=[self.position_gain] * N_JOINTS,
         )

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from adaptdiffuser.families.kuka.scene import BLOCK_HALF, N_BLOCKS, N_JOINTS, block_position_columns
+from adaptdiffuser.families.kuka.scene import BLOCK_HALF, FLAG_COLUMNS, N_BLOCKS, block_position_columns
 
 #: pick-and-place: block i goes to PLACE_TARGETS[i] (x, y, z of its centre)
 PLACE_TARGETS = np.array([[0.5, -0.8, 0.032], [0.5, -0.3, 0.032], [0.5, 0.3, 0.032], [0.5, 0.8, 0.032]])
@@ -24,7 +24,7 @@ def block_positions(obs: np.ndarray) -> np.ndarray:
 
 def block_flags(obs: np.ndarray) -> np.ndarray:
     """``[..., 4]`` attached flags of observations ``[..., 39]``."""
-    return np.stack([obs[..., block_position_columns(i).stop + 4] for i in range(N_BLOCKS)], axis=-1)
+    return obs[..., list(FLAG_COLUMNS)]
 
 
 def stacked_count(obs: np.ndarray) -> int:
@@ -76,7 +76,3 @@ def tower_blocks(rng: np.random.Generator, radius: tuple[float, float], max_x: f
     """Four blocks ``[4, 7]`` stacked in one tower (block 0 at the bottom) at a random place in the ring."""
     base = scattered_blocks(rng, radius, 0.0, max_x)[0]
     return np.array([[base[0], base[1], BLOCK_HALF[2] * (2 * i + 1) + 0.001 * i, *UPRIGHT] for i in range(N_BLOCKS)])
-
-
-def joints_of(obs: np.ndarray) -> np.ndarray:
-    return obs[..., :N_JOINTS]
