@@ -21,6 +21,7 @@ from adaptdiffuser.evolution.discriminator import (
     SelectionRule,
     TrackedTrajectory,
     generic_selection_rule,
+    passes_tracking,
     select,
 )
 from adaptdiffuser.families.kuka.dataset import state_episodes
@@ -135,7 +136,7 @@ def judge_episodes(
         judged.append(execute_plan(sims[setup], generated.observation[episode].astype(np.float64)))
     for sim in sims.values():
         sim.close()
-    passed = np.array([t.max_error <= cfg.max_error for t in judged], dtype=bool)
+    passed = np.array([passes_tracking(t, cfg.max_error) for t in judged], dtype=bool)
     kept = select(judged, np.flatnonzero(passed), selection_rule(cfg))
     return Judgement(trajectories=judged, passed_tracking=passed, kept=kept)
 
