@@ -141,9 +141,10 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         hopper = params.resolve("hopper-medium")
         assert hopper.family == "locomotion" and hopper.diffusion.horizon == 32
     if profile == "quick-kuka":
-        assert params.tasks == ("kuka-stacking",) and params.coin_tasks == () and params.evolve is None
+        assert params.tasks == ("kuka-stacking",) and params.coin_tasks == () and params.evolve == "kuka-stacking"
         kuka = params.resolve("kuka-stacking")
         assert kuka.family == "kuka" and kuka.diffusion.horizon == 128 and kuka.settings.replans == 3
+        assert params.phase_names == ["phase1", "phase2"] and params.phase(2).discriminate.max_error == 1.02
     if profile == "paper-kuka":
         kuka = params.resolve("kuka-stacking")
         assert kuka.settings.collect.episodes == 10000 and kuka.model.dim == 128 and kuka.diffusion.n_steps == 1000
@@ -633,6 +634,7 @@ def test_the_kuka_profiles_describe_their_data_and_phases(tmp_path: Path) -> Non
     """``check`` on the KUKA profiles: the collect line is the family's own; evolution phases on the paper profile."""
     lines = describe(apply_and_load("quick-kuka", tmp_path))
     assert "  collect@kuka-stacking: 300 scripted stacking demonstrations (seed 0)" in lines
+    assert "  finetune@phase2: 3000 steps on phases [1, 2] + expert (0.5 of each batch)" in lines
     lines = describe(apply_and_load("paper-kuka", tmp_path))
     assert "  discriminate@phase1: paper thresholds, tracking error <= 1.02" in lines
     assert "  evaluate-coin@phase2: skipped (kuka-stacking has no gold-coin task)" in lines
