@@ -46,8 +46,10 @@ def main() -> None:
     bundle = load_bundle(root / model_dir(args.task, args.phase, args.training_seed), device)
     planner = Planner(bundle, make_sampler(base.planner.sampler, base.planner.sampler_steps), device)
     family = get_family(base.family)
-    print(f"{args.task} phase {args.phase}, training seed {args.training_seed}: {args.episodes} episodes per setup "
-          f"from seed {args.seed}")
+    print(
+        f"{args.task} phase {args.phase}, training seed {args.training_seed}: {args.episodes} episodes per setup "
+        f"from seed {args.seed}"
+    )
     for alpha in args.alphas:
         task = params_from_dict(set_dotted(raw, f"task.{args.task}.pick_place.alpha", alpha)).resolve(args.task)
         start = time.perf_counter()
