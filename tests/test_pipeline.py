@@ -144,6 +144,9 @@ def test_repro_runs_the_kuka_baseline(smoke_repo: Path) -> None:
     assert phase0["n_episodes"] == 2 and 0.0 <= phase0["score_mean"] <= 100.0
     for setup in (1, 2):
         assert 0.0 <= phase0[f"pick_place_setup{setup}_score_mean"] <= 100.0
+    gains = _run(["adaptdiffuser", "gains"], smoke_repo)  # pick-and-place listed under the scores, per setup
+    score = phase0["pick_place_setup2_score_mean"]
+    assert f"| {KUKA} | 0 | pick_place_setup2 | {score:.1f} ± " in gains
     results = pq.read_table(smoke_repo / f"results/{KUKA}/phase0/seed0/episodes.parquet").to_pydict()
     assert results["length"] == [2 * 15, 2 * 15]  # two open-loop plans of 16 states (15 steps each)
     assert (smoke_repo / f"plots/{KUKA}/phase0/seed0/plan_00.png").read_bytes()[:4] == b"\x89PNG"

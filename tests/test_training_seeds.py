@@ -26,7 +26,7 @@ from adaptdiffuser.stages.finetune import run_finetune
 from adaptdiffuser.stages.generate import run_generate
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
-from adaptdiffuser.stages.report import run_report, seed_points
+from adaptdiffuser.stages.report import extra_scores_table, run_report, seed_points
 from adaptdiffuser.stages.summarize import run_summarize
 
 REPO = Path(__file__).resolve().parents[1]
@@ -122,6 +122,24 @@ def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> No
     assert points["score_mean"][0] == [0, 0, 1, 1] and points["control_score_mean"][0] == [1, 1]
     rows = run_report(root)[TASK]
     assert [r["n_seeds"] for r in rows] == [2, 2]
+
+
+def test_extra_evaluations_are_tabled_against_the_control() -> None:
+    """A family's other evaluations (``<name>_score_mean``) get one row per phase: the phase, its control and the
+    difference, whose standard error adds the two in quadrature; a task without any adds no table."""
+    place = {"place_score_mean": 30.0, "place_score_stderr": 3.0}
+    summary = {
+        "arm": {
+            "phase_1": {"score_mean": 1.0, **place, "control": {"place_score_mean": 26.0, "place_score_stderr": 4.0}},
+            "phase_0": {"score_mean": 2.0, "place_score_mean": 20.0, "place_score_stderr": 2.0},
+        },
+        "maze": {"phase_0": {"score_mean": 80.0, "score_stderr": 1.0}},
+    }
+    assert extra_scores_table(summary)[2:] == [
+        "| arm | 0 | place | 20.0 ± 2.0 |  |  |",
+        "| arm | 1 | place | 30.0 ± 3.0 | 26.0 ± 4.0 | 4.0 ± 5.0 |",
+    ]
+    assert extra_scores_table({"maze": summary["maze"]}) == []
 
 
 def test_over_seeds_with_one_seed_changes_nothing_but_adds_the_seed() -> None:

@@ -400,15 +400,20 @@ def gains(
     ] = None,
 ) -> None:
     """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error) as a
-    Markdown table."""
+    Markdown table; then the other evaluations a family runs (KUKA's pick-and-place), phase against control."""
     from adaptdiffuser.io import read_json
-    from adaptdiffuser.stages.report import gains_table
+    from adaptdiffuser.stages.report import extra_scores_table, gains_table
 
     merged: dict = {}
     for path in summaries or [Path("metrics/summary.json")]:
         merged |= _guarded(lambda path=path: read_json(path, f"{path} (run the summarize stage)"))
     for line in gains_table(merged):
         typer.echo(line)
+    extra = extra_scores_table(merged)
+    if extra:
+        typer.echo("")
+        for line in extra:
+            typer.echo(line)
 
 
 @app.command()

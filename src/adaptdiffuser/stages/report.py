@@ -6,6 +6,8 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
+import numpy as np
+
 from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.plots import save_score_by_phase
 from adaptdiffuser.stages.common import SUMMARY, report_plot_path, score_table_path
@@ -67,6 +69,35 @@ def gains_table(summary: dict) -> list[str]:
                 f"| {row['kept']:g} |"
             )
     return lines
+
+
+def extra_scores_table(summary: dict) -> list[str]:
+    """A Markdown table of the other evaluations each phase carries (a family's ``extra_evaluations``, metrics named
+    ``<name>_score_mean`` / ``<name>_score_stderr``): the phase's, its control's and their difference, whose
+    standard error treats the two as independent (conservative when both ran on the same episodes). Empty when no
+    phase has one."""
+    lines = []
+    for task, task_summary in summary.items():
+        for key, entry in sorted(task_summary.items(), key=lambda item: _phase_order(item[0])):
+            if not key.startswith("phase_"):
+                continue
+            control = entry.get("control", {})
+            for name in sorted(k.removesuffix("_score_mean") for k in entry if k.endswith("_score_mean")):
+                mean, stderr = entry[f"{name}_score_mean"], entry.get(f"{name}_score_stderr", 0.0)
+                c_mean, c_stderr = control.get(f"{name}_score_mean"), control.get(f"{name}_score_stderr", 0.0)
+                diff = "" if c_mean is None else _pm(mean - c_mean, float(np.hypot(stderr, c_stderr)))
+                lines.append(
+                    f"| {task} | {key.removeprefix('phase_')} | {name} | {_pm(mean, stderr)} "
+                    f"| {_pm(c_mean, c_stderr)} | {diff} |"
+                )
+    if not lines:
+        return []
+    header = ["| task | phase | evaluation | score | control | difference |", "|---|---|---|---|---|---|"]
+    return header + lines
+
+
+def _phase_order(key: str) -> int:
+    return int(key.removeprefix("phase_")) if key.startswith("phase_") else -1
 
 
 def seed_points(task_summary: dict) -> dict[str, tuple[list[int], list[float]]]:
