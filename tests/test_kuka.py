@@ -209,9 +209,8 @@ def test_discriminator_executes_plans_and_rejects_what_the_simulator_cannot_do()
     jump[30:, 0] += 2.0  # the base joint jumps by 2 rad (position control covers about 0.6 rad per step)
     generated = _as_generated([demo, teleport, jump])
     cfg = DiscriminateParams(max_error=1.02, rule="paper")
-    judgement = judge_episodes(
-        lambda task, kind, setup: KukaSimulator(SETTINGS, episode_steps=1000), None, generated, cfg, progress=False
-    )
+    simulator = lambda task, kind, setup: KukaSimulator(SETTINGS, episode_steps=1000)  # noqa: E731
+    judgement = judge_episodes(simulator, None, generated, cfg, demo, None, progress=False)
     demo_run, teleport_run, jump_run = judgement.trajectories
     assert demo_run.max_error < 1.02 and demo_run.total_reward == 3
     # commanded to the demonstration's recorded states (not its inverse-kinematics targets): the same outcome
@@ -220,6 +219,11 @@ def test_discriminator_executes_plans_and_rejects_what_the_simulator_cannot_do()
     assert jump_run.max_error > 1.02
     assert judgement.passed_tracking.tolist() == [True, True, False]
     assert judgement.kept.tolist() == [0]
+    # states outside the expert data's range (here: the demonstration before any block moved) are rejected
+    before_lift = demo[:10]
+    for excess, passed in ((0.25, [False]), (None, [True])):
+        judged = judge_episodes(simulator, None, _as_generated([demo]), cfg, before_lift, excess, progress=False)
+        assert judged.passed_tracking.tolist() == passed
     assert MinReturnRule(1.5).select(np.array([1.0, 2.0, 4.0, 1.5]), np.ones(4)).tolist() == [2, 1]
 
 
@@ -231,6 +235,7 @@ def test_generation_records_executed_plan_chains_and_the_discriminator_judges_th
     from adaptdiffuser.checkpoint import load_bundle
     from adaptdiffuser.config import GenerateParams
     from adaptdiffuser.diffusion.samplers import make_sampler
+    from adaptdiffuser.families.base import TaskFiles
     from adaptdiffuser.families.registry import get_family
     from adaptdiffuser.planning import Planner
 
@@ -250,9 +255,8 @@ def test_generation_records_executed_plan_chains_and_the_discriminator_judges_th
     np.testing.assert_array_equal(again.observation, generated.observation)  # same seed, same plans
     starts = generated.observation[:: steps + 1]
     assert np.allclose(block_positions(starts[3])[:, :2], block_positions(starts[3])[0, :2])  # setup 2: a tower
-    judgement = family.discriminate(
-        task, generated, DiscriminateParams(max_error=100.0, rule="quantile"), 1, None, progress=False
-    )
+    cfg = DiscriminateParams(max_error=100.0, rule="quantile")
+    judgement = family.discriminate(task, generated, cfg, 1, TaskFiles(smoke_repo, task.name), progress=False)
     assert judgement.passed_tracking.all() and len(judgement.kept) >= 1
     for tracked, start in zip(judgement.trajectories, starts, strict=True):  # executed from each plan's start
         np.testing.assert_allclose(tracked.observations[0], start, atol=1e-5)

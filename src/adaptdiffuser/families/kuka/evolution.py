@@ -3,7 +3,9 @@ setups, each a chain of open-loop plans from phase k-1's model guided toward the
 simulator, so each plan starts where the last one ended; the file holds the planned state of every step.
 Discrimination: the plans are executed again from the same start; an episode whose executed joints and suction
 flags ever leave the planned ones by more than ``max_error`` (L2; the reference: 1.02) is rejected (its reward
-zeroed), and the rest are selected by the blocks placed (the paper: reward > 1.5, at least two of four)."""
+zeroed), and so is one whose executed states leave the stacking data's range by more than
+``selection.max_range_excess`` (ours); the rest are selected by the blocks placed (the paper: reward > 1.5, at least
+two of four)."""
 
 from __future__ import annotations
 
@@ -118,11 +120,28 @@ def execute_plan(sim: KukaSimulator, planned: np.ndarray) -> TrackedTrajectory:
     )
 
 
+def within_range(observations: np.ndarray, low: np.ndarray, high: np.ndarray, excess: float | None) -> bool:
+    """Whether every state lies within ``[low, high]`` widened by ``excess`` of its width per dimension (always,
+    with ``excess`` None)."""
+    if excess is None:
+        return True
+    margin = excess * (high - low)
+    return bool(np.all((observations >= low - margin) & (observations <= high + margin)))
+
+
 def judge_episodes(
-    make_simulator: Any, task: TaskParams, generated: Trajectories, cfg: DiscriminateParams, progress: bool
+    make_simulator: Any,
+    task: TaskParams,
+    generated: Trajectories,
+    cfg: DiscriminateParams,
+    expert: np.ndarray,
+    max_range_excess: float | None,
+    progress: bool,
 ) -> Judgement:
     """Execute every generated episode in its setup's simulator; reject those whose joints or flags leave the plan
-    by more than ``cfg.max_error``; select the rest by blocks placed with the rule ``cfg.rule`` names."""
+    by more than ``cfg.max_error`` or whose states leave the range of the ``expert`` states by more than
+    ``max_range_excess`` of it (None: no range check); select the rest by blocks placed with the rule
+    ``cfg.rule`` names."""
     if SETUP_COLUMN not in generated.extra:
         raise SchemaError(f"generated KUKA file lacks column {SETUP_COLUMN!r}")
     if not cfg.tracking:
@@ -136,7 +155,14 @@ def judge_episodes(
         judged.append(execute_plan(sims[setup], generated.observation[episode].astype(np.float64)))
     for sim in sims.values():
         sim.close()
-    passed = np.array([passes_tracking(t, cfg.max_error) for t in judged], dtype=bool)
+    low, high = expert.min(axis=0), expert.max(axis=0)
+    passed = np.array(
+        [
+            passes_tracking(t, cfg.max_error) and within_range(t.observations, low, high, max_range_excess)
+            for t in judged
+        ],
+        dtype=bool,
+    )
     kept = select(judged, np.flatnonzero(passed), selection_rule(cfg))
     return Judgement(trajectories=judged, passed_tracking=passed, kept=kept)
 

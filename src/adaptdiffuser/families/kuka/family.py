@@ -118,10 +118,14 @@ class KukaFamily(Family):
         return generate_episodes(self.make_simulator, task, planner, cfg, seed, generator, progress)
 
     def discriminate(self, task, generated, cfg, phase, files, progress):
-        """Execute each episode's plans; reject drift of joints and flags; select by blocks placed."""
+        """Execute each episode's plans; reject drift of joints and flags, and states outside the stacking data's
+        range; select by blocks placed."""
+        from adaptdiffuser.data.schema import read_trajectories
         from adaptdiffuser.families.kuka.evolution import judge_episodes
 
-        return judge_episodes(self.make_simulator, task, generated, cfg, progress)
+        expert = read_trajectories(files.dataset, task.name).observation
+        excess = task.settings.selection.max_range_excess
+        return judge_episodes(self.make_simulator, task, generated, cfg, expert, excess, progress)
 
     def selected_data(self, task, generated, judgement, generator):
         from adaptdiffuser.families.kuka.evolution import selected_episodes

@@ -95,6 +95,17 @@ class PickPlaceSettings(BaseModel):
     batch_size: int = Field(20, gt=0)
 
 
+class SelectionSettings(BaseModel):
+    """What the discriminator asks of an executed pick-and-place episode besides tracking (our addition)."""
+
+    model_config = Frozen
+
+    #: reject an episode whose executed states leave the stacking data's range of some dimension by more than this
+    #: fraction of that range (a block tipped over or flung away: states the min-max model cannot plan, which
+    #: dominated fine-tuning's loss without this check, README "KUKA"); null: no check (the reference)
+    max_range_excess: float | None = Field(0.25, ge=0)
+
+
 class KukaTaskParams(BaseModel):
     """The KUKA iiwa arm with a suction cup and four blocks on PyBullet: ``kuka-stacking``."""
 
@@ -109,6 +120,7 @@ class KukaTaskParams(BaseModel):
     #: stacking episodes: this many open-loop plans of the horizon, each from where the last one ended
     replans: int = Field(3, gt=0)
     pick_place: PickPlaceSettings = Field(default_factory=PickPlaceSettings)
+    selection: SelectionSettings = Field(default_factory=SelectionSettings)
 
     def describe_data(self) -> str:
         """The collect stage's recipe, one line (``adaptdiffuser check``)."""
