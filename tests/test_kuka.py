@@ -16,7 +16,7 @@ from adaptdiffuser.families.kuka.demonstrator import (
     collect_demonstrations,
     record_demonstration,
 )
-from adaptdiffuser.families.kuka.evolution import SETUP_COLUMN, MinReturnRule, judge_episodes
+from adaptdiffuser.families.kuka.evolution import SETUP_COLUMN, MinReturnRule, judge_episodes, within_range
 from adaptdiffuser.families.kuka.execution import PlaceObjective, plan_commands
 from adaptdiffuser.families.kuka.params import KukaTaskParams
 from adaptdiffuser.families.kuka.scene import BLOCK_HALF, FLAG_COLUMNS, N_JOINTS, OBS_DIM, block_position_columns
@@ -256,8 +256,15 @@ def test_generation_records_executed_plan_chains_and_the_discriminator_judges_th
     starts = generated.observation[:: steps + 1]
     assert np.allclose(block_positions(starts[3])[:, :2], block_positions(starts[3])[0, :2])  # setup 2: a tower
     cfg = DiscriminateParams(max_error=100.0, rule="quantile")
-    judgement = family.discriminate(task, generated, cfg, 1, TaskFiles(smoke_repo, task.name), progress=False)
+    expert = read_trajectories(smoke_repo / "data/kuka-stacking/dataset.parquet").observation
+    judgement = judge_episodes(family.make_simulator, task, generated, cfg, expert, None, progress=False)
     assert judgement.passed_tracking.all() and len(judgement.kept) >= 1
+    # the family's discriminator adds the range check against the task's stacking data
+    checked = family.discriminate(task, generated, cfg, 1, TaskFiles(smoke_repo, task.name), progress=False)
+    excess = task.settings.selection.max_range_excess
+    low, high = expert.min(axis=0), expert.max(axis=0)
+    in_range = [within_range(t.observations, low, high, excess) for t in judgement.trajectories]
+    assert excess == 0.25 and checked.passed_tracking.tolist() == in_range
     for tracked, start in zip(judgement.trajectories, starts, strict=True):  # executed from each plan's start
         np.testing.assert_allclose(tracked.observations[0], start, atol=1e-5)
     selected = family.selected_data(task, generated, judgement, {"phase": 1})
