@@ -138,3 +138,9 @@ def file_digest(path: Path) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def phase_entries(task_summary: dict) -> list[tuple[int, dict]]:
+    """``(k, entry)`` of every ``phase_k`` entry of one task's summary, in phase order."""
+    phases = [(int(k.removeprefix("phase_")), entry) for k, entry in task_summary.items() if k.startswith("phase_")]
+    return sorted(phases, key=lambda item: item[0])

@@ -10,7 +10,7 @@ import numpy as np
 
 from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.plots import save_score_by_phase
-from adaptdiffuser.stages.common import SUMMARY, report_plot_path, score_table_path
+from adaptdiffuser.stages.common import SUMMARY, phase_entries, report_plot_path, score_table_path
 
 TABLE_COLUMNS = (
     "phase",
@@ -31,12 +31,10 @@ def score_table(task_summary: dict) -> list[dict]:
     """One row per phase, in phase order, from one task's entry of ``metrics/summary.json`` (phase 0 has no
     control: its control and gain cells are empty)."""
     rows = []
-    for key, entry in task_summary.items():
-        if not key.startswith("phase_"):
-            continue
+    for phase, entry in phase_entries(task_summary):
         rows.append(
             {
-                "phase": int(key.removeprefix("phase_")),
+                "phase": phase,
                 **{k: entry[k] for k in ("score_mean", "score_stderr", "return_mean", "n_episodes")},
                 "n_seeds": entry.get("n_seeds", 1),
                 "control_score_mean": entry.get("control", {}).get("score_mean"),
@@ -46,7 +44,7 @@ def score_table(task_summary: dict) -> list[dict]:
                 "kept": entry.get("discriminator", {}).get("kept", 0),
             }
         )
-    return sorted(rows, key=lambda row: row["phase"])
+    return rows
 
 
 def _pm(mean: float | None, stderr: float | None) -> str:
@@ -78,35 +76,23 @@ def extra_scores_table(summary: dict) -> list[str]:
     phase has one."""
     lines = []
     for task, task_summary in summary.items():
-        for key, entry in sorted(task_summary.items(), key=lambda item: _phase_order(item[0])):
-            if not key.startswith("phase_"):
-                continue
+        for phase, entry in phase_entries(task_summary):
             control = entry.get("control", {})
             for name in sorted(k.removesuffix("_score_mean") for k in entry if k.endswith("_score_mean")):
                 mean, stderr = entry[f"{name}_score_mean"], entry.get(f"{name}_score_stderr", 0.0)
                 c_mean, c_stderr = control.get(f"{name}_score_mean"), control.get(f"{name}_score_stderr", 0.0)
                 diff = "" if c_mean is None else _pm(mean - c_mean, float(np.hypot(stderr, c_stderr)))
-                lines.append(
-                    f"| {task} | {key.removeprefix('phase_')} | {name} | {_pm(mean, stderr)} "
-                    f"| {_pm(c_mean, c_stderr)} | {diff} |"
-                )
+                lines.append(f"| {task} | {phase} | {name} | {_pm(mean, stderr)} | {_pm(c_mean, c_stderr)} | {diff} |")
     if not lines:
         return []
     header = ["| task | phase | evaluation | score | control | difference |", "|---|---|---|---|---|---|"]
     return header + lines
 
 
-def _phase_order(key: str) -> int:
-    return int(key.removeprefix("phase_")) if key.startswith("phase_") else -1
-
-
 def seed_points(task_summary: dict) -> dict[str, tuple[list[int], list[float]]]:
     """``(phases, values)`` of every training seed's score and control score, from the summary's ``per_seed``."""
     points: dict[str, tuple[list[int], list[float]]] = {"score_mean": ([], []), "control_score_mean": ([], [])}
-    for key, entry in task_summary.items():
-        if not key.startswith("phase_"):
-            continue
-        phase = int(key.removeprefix("phase_"))
+    for phase, entry in phase_entries(task_summary):
         for seed_entry in entry.get("per_seed", {}).values():
             for name, (xs, ys) in points.items():
                 if name in seed_entry:

@@ -12,6 +12,7 @@ from adaptdiffuser.stages.common import (
     SUMMARY,
     coin_metrics_path,
     discriminator_metrics_path,
+    phase_entries,
     phase_metrics_path,
     reference_path,
 )
@@ -89,7 +90,7 @@ def log_evolution(task: str, entry: dict, root: Path) -> None:
     """One MLflow run per task (``summarize``, in the pipeline's parent run) with the evolution curve as metrics at
     step k = phase: ``score`` (and ``score_stderr``), and for evolution phases ``control`` and ``gain``; the
     registered model's alias ``best`` moves to the phase with the highest score (tag ``best_phase``)."""
-    phases = {int(key.removeprefix("phase_")): phase for key, phase in entry.items() if key.startswith("phase_")}
+    phases = dict(phase_entries(entry))
     with stage_run(task, "summarize", None, {"phases": ",".join(map(str, sorted(phases)))}, root):
         for k, phase in sorted(phases.items()):
             mlflow.log_metric("score", phase["score_mean"], step=k)
