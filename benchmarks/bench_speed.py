@@ -8,7 +8,8 @@ slows both sides alike.
   ``torch.compile`` (inductor, frozen weights) as well;
 * a U-Maze decision at batch 1 with the profile's planner (also with coin guidance), the 16-step DDIM planner of
   earlier profiles and the full DDPM chain; evaluation throughput (protocol episodes in one batch);
-* a locomotion decision (``quick-locomotion`` shapes: ``--episodes`` x ``--samples`` value-guided plans);
+* a locomotion decision (``quick-locomotion`` shapes: ``--episodes`` x ``--samples`` value-guided plans), as the
+  profile plans (warm-started from the last plan) and from pure noise;
 * generation throughput of an evolution phase (plans/s, the profile's generation settings).
 
 It ends with machine-readable lines ``decision_ms_umaze_b1=``, ``speedup_train=``, ``speedup_sampling=``,
@@ -129,8 +130,13 @@ def main() -> None:
     decide(0)
     loco_s = _alternate({"profile": lambda: decide(1)}, args.rounds, device, calls=1)["profile"] / 1000
     lp, guide = loco.task.planner, loco.task.settings.guide
+    start = "pure noise" if guide.warm_start_step is None else f"the last plan noised to step {guide.warm_start_step}"
     print(f"locomotion decision, {args.episodes} episodes x {args.samples} samples, {lp.sampler} {lp.sampler_steps}, "
-          f"{guide.n_guide_steps} value-gradient steps: {loco_s:.2f} s")  # fmt: skip
+          f"{guide.n_guide_steps} value-gradient steps, from {start}: {loco_s:.2f} s")  # fmt: skip
+    cold = locomotion_paths(device, args.episodes, args.samples, warm_start=False).decision()
+    cold(0)
+    cold_s = _alternate({"cold": lambda: cold(1)}, args.rounds, device, calls=1)["cold"] / 1000
+    print(f"the same from pure noise every decision (Diffuser): {cold_s:.2f} s")
 
     # generation throughput
     generate = maze.generate(device, args.generate_tasks)

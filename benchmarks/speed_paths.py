@@ -107,10 +107,16 @@ class LocomotionPaths:
 
 
 def locomotion_paths(
-    device: torch.device, episodes: int, samples: int, sampler: str | None = None, steps: int | None = None
+    device: torch.device,
+    episodes: int,
+    samples: int,
+    sampler: str | None = None,
+    steps: int | None = None,
+    warm_start: bool = True,
 ) -> LocomotionPaths:
     """Untrained networks of ``quick-locomotion``'s hopper-medium shapes and its planner (or ``sampler``/``steps``),
-    ``episodes`` simulators reset from seeds 0.., ``samples`` plans per episode per decision."""
+    ``episodes`` simulators reset from seeds 0.., ``samples`` plans per episode per decision; decisions after the
+    first warm-start as the profile says (``guide.warm_start_step``), or from pure noise without ``warm_start``."""
     with tempfile.TemporaryDirectory() as tmp:
         params_path = Path(tmp) / "params.yaml"
         params_path.write_text((PROFILES.parent / "params.yaml").read_text())
@@ -128,7 +134,8 @@ def locomotion_paths(
     sampler_ = make_sampler(sampler or task.planner.sampler, steps or task.planner.sampler_steps)
     planner = Planner(bundle, sampler_, device)
     guidance = ValueGuidance(value_net, g.scale, g.n_guide_steps, g.t_stopgrad, g.scale_grad_by_std)
-    controller = ValuePlanningController(planner, guidance, samples, seed=0)
+    warm = g.warm_start_step if warm_start else None
+    controller = ValuePlanningController(planner, guidance, samples, seed=0, warm_start_step=warm)
     sims = [family.make_simulator(task) for _ in range(episodes)]
     obs = np.stack([s.reset(np.random.default_rng(i)) for i, s in enumerate(sims)])
     controller.begin(sims, obs, list(range(episodes)))

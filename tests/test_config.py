@@ -382,6 +382,22 @@ REJECTED = [
         "task.hopper-medium.episode_steps",
         "10 is shorter than diffusion.horizon=128",
     ),
+    (
+        {
+            "tasks": ["hopper-medium"],
+            "coin_tasks": [],
+            "evolve": None,
+            "phases": {},
+            "task": {"hopper-medium": {"family": "locomotion", "guide": {"warm_start_step": 64}}},
+        },
+        "task.hopper-medium.guide.warm_start_step",
+        "64 is not a diffusion step (0..63, diffusion.n_steps)",
+    ),
+    (
+        {"task": {"hopper-medium": {"family": "locomotion", "guide": {"warm_start_step": -1}}}},
+        "task.hopper-medium.guide.warm_start_step",
+        "greater than or equal to 0",
+    ),
     ({"task": {"hopper-medium": {"family": "locomotion", "env": {}}}}, "task.hopper-medium.env", "unknown"),
     ({"task": {"Maze2D": {"family": "maze2d"}}}, "task.Maze2D", "task names are lower-case letters"),
     (

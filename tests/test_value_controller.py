@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 import torch
 from conftest import maze_sim
 from torch import nn
@@ -14,10 +15,10 @@ from adaptdiffuser.checkpoint import make_bundle
 from adaptdiffuser.data.normalizer import GaussianNormalizer
 from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.diffusion.guidance import ValueGuidance
-from adaptdiffuser.diffusion.samplers import DDIMSampler
+from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
 from adaptdiffuser.evaluation import Controller, run_episodes
 from adaptdiffuser.families.base import Simulator, Step
-from adaptdiffuser.planning import Planner, ValuePlanningController
+from adaptdiffuser.planning import Planner, ValuePlanningController, shift_plans
 from adaptdiffuser.seeding import derive_seed
 
 CPU = torch.device("cpu")
@@ -126,3 +127,89 @@ def test_value_guidance_raises_the_value_of_the_chosen_plans(tiny_model_params, 
     v_plain = plain.values(planner.sample(obs, None, range(8), plain))
     v_guided = guided.values(planner.sample(obs, None, range(8), guided))
     assert v_guided.mean() > v_plain.mean() + 0.1
+
+
+class CallLog:
+    """Records the diffusion steps and batch sizes of a denoiser network's forward calls."""
+
+    def __init__(self, net: nn.Module) -> None:
+        self.calls: list[tuple[int, int]] = []
+        net.register_forward_hook(lambda module, args, out: self.calls.append((int(args[1][0]), len(args[0]))))
+
+
+def test_warm_start_noises_the_guess_and_visits_only_the_steps_below(tiny_model_params, tiny_diffusion_params) -> None:
+    planner = _planner(tiny_model_params, tiny_diffusion_params)  # DDIM 4 of 8 steps: 7, 5, 2, 0
+    planner.sampler = DDPMSampler()
+    log = CallLog(planner.model.model)
+    obs = np.zeros((3, 4))
+    cold = planner.sample(obs, None, [1, 2, 3])
+    assert [t for t, _ in log.calls] == list(range(7, -1, -1))
+    log.calls.clear()
+    guess = torch.randn_like(cold)
+    warm = planner.sample(obs, None, [1, 2, 3], warm_start=(guess, 3))
+    assert [t for t, _ in log.calls] == [3, 2, 1, 0]
+    torch.testing.assert_close(warm[:, 0, 2:], cold[:, 0, 2:])  # the start is still inpainted
+    # the result follows the guess, row by row: the same guess gives the same rows in any batch
+    other = planner.sample(obs, None, [1, 2, 3], warm_start=(-guess, 3))
+    assert not torch.allclose(warm, other)
+    alone = planner.sample(obs[1:2], None, [2], warm_start=(guess[1:2], 3))
+    torch.testing.assert_close(alone[0], warm[1], atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="warm start step"):
+        planner.sample(obs, None, [1, 2, 3], warm_start=(guess, 8))
+    with pytest.raises(ValueError, match="warm start trajectories"):
+        planner.sample(obs, None, [1, 2, 3], warm_start=(guess[:2], 3))
+
+
+def test_warm_started_controller_replans_from_its_last_plan_shifted(tiny_model_params, tiny_diffusion_params) -> None:
+    planner = _planner(tiny_model_params, tiny_diffusion_params)
+    planner.sampler = DDPMSampler()
+    log = CallLog(planner.model.model)
+    guidance = ValueGuidance(PreferFirstAction(), scale=0.0)
+    controller = ValuePlanningController(planner, guidance, n_samples=3, seed=5, warm_start_step=2)
+    envs = [maze_sim() for _ in range(2)]
+    obs = np.stack([env.reset(np.random.default_rng(i)) for i, env in enumerate(envs)])
+    controller.begin(envs, obs, [0, 1])
+    controller.act(envs, obs, 0)
+    assert len(log.calls) == 8  # the first decision runs the whole chain
+    first = controller.last_plans.clone()
+    log.calls.clear()
+    actions = controller.act(envs, obs, 1)
+    assert [t for t, _ in log.calls] == [2, 1, 0]  # then only the steps from the warm start down
+
+    # the same decision drawn directly from the shifted plans
+    guess = shift_plans(first).repeat_interleave(3, dim=0)
+    x = planner.sample(np.repeat(obs, 3, axis=0), None, controller.seeds([0, 1], 1), guidance, (guess, 2))
+    best = x[:, 0, 0].reshape(2, 3).argmax(dim=1).numpy()
+    np.testing.assert_allclose(actions, planner.actions(x).reshape(2, 3, 2)[np.arange(2), best], atol=1e-6)
+    torch.testing.assert_close(shift_plans(first)[:, :-1], first[:, 1:])
+    with pytest.raises(ValueError, match="warm_start_step"):
+        ValuePlanningController(planner, guidance, n_samples=3, seed=5, warm_start_step=8)
+
+
+class PlansForEveryRow(ValuePlanningController):
+    """The controller as it was: plans for ended episodes too."""
+
+    def active_rows(self, n: int) -> np.ndarray:
+        return np.ones(n, dtype=bool)
+
+
+def test_ended_episodes_are_not_planned_for_and_the_others_do_not_change(
+    tiny_model_params, tiny_diffusion_params
+) -> None:
+    planner = _planner(tiny_model_params, tiny_diffusion_params)
+    log = CallLog(planner.model.model)
+    guidance = ValueGuidance(PreferFirstAction(), scale=0.0)
+
+    def run(kind: type[ValuePlanningController]):
+        log.calls.clear()
+        lengths = iter([3, 25])  # episode 0 ends after 3 steps, episode 1 runs into the 20-step limit
+        result = run_episodes(lambda: FallsAfter(next(lengths)), kind(planner, guidance, 2, 1), 2, 0, 2, progress=False)
+        return result, [b for t, b in log.calls if t == 7]  # one call per decision at the first DDIM step
+
+    skipping, sizes = run(ValuePlanningController)
+    assert sizes == [4, 4, 4] + [2] * 17  # 2 episodes x 2 samples, then only the running one
+    assert skipping.lengths == [3, 20]
+    every, sizes = run(PlansForEveryRow)
+    assert sizes == [4] * 20
+    for a, b in zip(skipping.executed, every.executed, strict=True):  # float tolerance: other batch shapes
+        np.testing.assert_allclose(a, b, atol=1e-4)

@@ -49,6 +49,13 @@ class Controller:
 
     #: the state sequences planned at t = 0 for the current batch, if the controller plans (for pictures)
     first_plans: np.ndarray | None = None
+    #: which rows of the batch are still running, set by :func:`run_episodes` before each :meth:`act` (``None``:
+    #: all); a controller may skip the others, whose actions are never executed
+    active: np.ndarray | None = None
+
+    def active_rows(self, n: int) -> np.ndarray:
+        """The boolean mask of the ``n`` rows still running."""
+        return np.ones(n, dtype=bool) if self.active is None else self.active
 
     def begin(self, envs: list[Simulator], obs: np.ndarray, episodes: list[int]) -> None:
         """Called once per batch after reset."""
@@ -134,6 +141,7 @@ def run_episodes(
         done = np.zeros(len(episodes), dtype=bool)
         controller.begin(batch_envs, obs, episodes)
         for t in range(horizon):
+            controller.active = ~done
             actions = controller.act(batch_envs, obs, t)
             obs = obs.copy()
             for i in np.flatnonzero(~done):
@@ -145,6 +153,7 @@ def run_episodes(
             if done.all():
                 trace[t + 2 :] = obs
                 break
+        controller.active = None
         plans = controller.first_plans
         for i, ep in enumerate(episodes):
             hits = np.flatnonzero(rewards[:, i] > 0)

@@ -43,18 +43,34 @@ class Sampler(ABC):
         conditions: Conditions,
         noise: RowNoise,
         guidance: GuidanceBase | None = None,
+        warm_start: tuple[torch.Tensor, int] | None = None,
     ) -> torch.Tensor:
         """Run the chain from pure noise; return normalized trajectories ``[len(noise), horizon, transition]``,
         row ``i`` drawing its initial and per-step noise from row ``i`` of ``noise`` only. With ``guidance``, each
         step first calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), then adds
-        ``guidance.mean_shift`` to the step's mean (reward guidance, paper Eq. 5) before noise and inpainting."""
+        ``guidance.mean_shift`` to the step's mean (reward guidance, paper Eq. 5) before noise and inpainting.
+
+        ``warm_start = (x0, t0)`` starts instead from the normalized trajectories ``x0`` noised to diffusion step
+        ``t0`` (SDEdit-style partial noising) and visits only this sampler's steps below ``t0``: fewer network
+        calls when a good guess exists, e.g. the previous decision's plan shifted by one step."""
         for t, value in conditions.items():
             if value.shape[0] != len(noise):
                 raise ValueError(f"condition at step {t} has {value.shape[0]} rows but the noise has {len(noise)}")
-        x = noise.randn((diffusion.horizon, diffusion.transition_dim))
+        shape = (diffusion.horizon, diffusion.transition_dim)
+        steps = self.timesteps(diffusion)
+        if warm_start is None:
+            x = noise.randn(shape)
+        else:
+            x0, t0 = warm_start
+            if not 0 <= t0 < diffusion.n_steps:
+                raise ValueError(f"warm start step must be in [0, {diffusion.n_steps - 1}], got {t0}")
+            if tuple(x0.shape) != (len(noise), *shape):
+                raise ValueError(f"warm start trajectories have shape {tuple(x0.shape)}, need {(len(noise), *shape)}")
+            tt = torch.full((len(noise),), t0, device=x0.device, dtype=torch.long)
+            x = diffusion.q_sample(x0, tt, noise.randn(shape))
+            steps = [t0, *(t for t in steps if t < t0)]
         act_dim = diffusion.act_dim
         x = apply_inpainting(x, conditions, act_dim)
-        steps = self.timesteps(diffusion)
         for t, t_prev in zip(steps, [*steps[1:], -1], strict=True):
             if guidance is not None:
                 x = guidance.before_denoise(x, t, self.log_variance(diffusion, t, t_prev).exp(), conditions, act_dim)

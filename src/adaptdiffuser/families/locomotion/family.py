@@ -90,7 +90,7 @@ class LocomotionFamily(Family):
         value_net, _ = load_value(files.value, device)
         g = task.settings.guide
         guidance = ValueGuidance(value_net, g.scale, g.n_guide_steps, g.t_stopgrad, g.scale_grad_by_std)
-        return ValuePlanningController(planner, guidance, g.n_samples, task.evaluate.seed)
+        return ValuePlanningController(planner, guidance, g.n_samples, task.evaluate.seed, g.warm_start_step)
 
     def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
         """Value-guided segments from dataset states and fresh resets (``alpha`` guides maze coins only: unused)."""

@@ -106,6 +106,9 @@ class PlannerSettings(BaseModel):
     #: diffusion steps below this one are not guided
     t_stopgrad: int = Field(2, ge=0)
     scale_grad_by_std: bool = True
+    #: replan from the last executed plan shifted by one step and noised to this diffusion step (fewer network
+    #: calls per decision); ``None``: every decision from pure noise (Diffuser)
+    warm_start_step: int | None = Field(None, ge=0)
 
 
 class EvolutionSettings(BaseModel):
@@ -145,11 +148,16 @@ class LocomotionTaskParams(BaseModel):
             raise ConfigError(f"task.{name}: {err}") from None
 
     def check(self, task: TaskParams, params: Params) -> None:
-        """Episodes at least one plan long."""
+        """Episodes at least one plan long; a warm start within the diffusion chain."""
         where = f"task.{task.name}"
         h = task.diffusion.horizon
         if self.episode_steps < h:
             raise ConfigError(f"{where}.episode_steps: {self.episode_steps} is shorter than diffusion.horizon={h}")
+        warm, n_steps = self.guide.warm_start_step, task.diffusion.n_steps
+        if warm is not None and warm >= n_steps:
+            raise ConfigError(
+                f"{where}.guide.warm_start_step: {warm} is not a diffusion step (0..{n_steps - 1}, diffusion.n_steps)"
+            )
         if params.evolve != task.name:
             return
         for phase in params.phases:
