@@ -14,44 +14,29 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
-import yaml
+from trained_workspace import add_workspace_args, load_trained
 
-from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import params_from_dict, set_dotted
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.stages.common import model_dir, resolve_device
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("workspace", type=Path)
-    parser.add_argument("--task", default="kuka-stacking")
+    add_workspace_args(parser, task="kuka-stacking", episodes=20)
     parser.add_argument("--alphas", type=float, nargs="+", default=[0.0, 1.0, 10.0, 100.0])
-    parser.add_argument("--seed", type=int, default=7, help="episode seed (default 7: validation, not evaluation)")
-    parser.add_argument("--episodes", type=int, default=20)
-    parser.add_argument("--phase", type=int, default=0)
-    parser.add_argument("--training-seed", type=int, default=0)
-    parser.add_argument("--device", default="auto")
     args = parser.parse_args()
-    root = args.workspace.resolve()
-    raw = yaml.safe_load((root / "params.yaml").read_text())
-    raw = set_dotted(raw, f"task.{args.task}.pick_place.seed", args.seed)
-    raw = set_dotted(raw, f"task.{args.task}.pick_place.episodes", args.episodes)
-    device = resolve_device(args.device)
-    base = params_from_dict(raw).resolve(args.task)
-    bundle = load_bundle(root / model_dir(args.task, args.phase, args.training_seed), device)
-    planner = Planner(bundle, make_sampler(base.planner.sampler, base.planner.sampler_steps), device)
+    ws = load_trained(args, episodes_section="pick_place")
+    base = ws.task()
+    planner = Planner(ws.bundle, make_sampler(base.planner.sampler, base.planner.sampler_steps), ws.device)
     family = get_family(base.family)
     print(
         f"{args.task} phase {args.phase}, training seed {args.training_seed}: {args.episodes} episodes per setup "
         f"from seed {args.seed}"
     )
     for alpha in args.alphas:
-        task = params_from_dict(set_dotted(raw, f"task.{args.task}.pick_place.alpha", alpha)).resolve(args.task)
+        task = ws.task("pick_place.alpha", alpha)
         start = time.perf_counter()
         metrics = family.extra_evaluations(task, planner, progress=False)
         scores = "  ".join(

@@ -16,50 +16,28 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
+from trained_workspace import add_workspace_args, load_trained
 
-from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import params_from_dict, set_dotted
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, standard_error
-from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
-from adaptdiffuser.io import read_json
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.stages.common import model_dir, reference_path, resolve_device
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("workspace", type=Path)
-    parser.add_argument("--task", default=None, help="a task of params (default: the evolved task)")
+    add_workspace_args(parser)
     parser.add_argument("--steps", type=int, nargs="+", default=[4, 6, 8, 10, 12, 16])
     parser.add_argument("--ddpm", action="store_true", help="also the full DDPM chain")
-    parser.add_argument("--seed", type=int, default=7, help="episode seed (default 7: validation, not evaluation)")
-    parser.add_argument("--episodes", type=int, default=None, help="default: the task's evaluate.episodes")
-    parser.add_argument("--phase", type=int, default=0)
-    parser.add_argument("--training-seed", type=int, default=0)
     parser.add_argument("--repeats", type=int, default=10, help="decisions timed at batch 1")
-    parser.add_argument("--device", default="auto")
     args = parser.parse_args()
-    root = args.workspace.resolve()
-    raw = yaml.safe_load((root / "params.yaml").read_text())
-    name = args.task or raw.get("evolve") or raw["tasks"][0]
-    raw = set_dotted(raw, f"task.{name}.evaluate.seed", args.seed)
-    if args.episodes is not None:
-        raw = set_dotted(raw, f"task.{name}.evaluate.episodes", args.episodes)
-    task = params_from_dict(raw).resolve(name)
+    ws = load_trained(args)
+    task, device, bundle = ws.task(), ws.device, ws.bundle
     family = get_family(task.family)
-    device = resolve_device(args.device)
-    model = model_dir(task.name, args.phase, args.training_seed)
-    bundle = load_bundle(root / model, device)
-    ref = read_json(root / reference_path(task.name), f"reference scores of {task.name}")
-    files = TaskFiles(root, task.name, model, args.training_seed)
-    ev = task.evaluate
+    ref, files, ev = ws.reference(), ws.files(), task.evaluate
     print(f"{task.name} phase {args.phase} (training seed {args.training_seed}), {ev.episodes} episodes from seed "
           f"{args.seed}, torch threads {torch.get_num_threads()}, profile sampler {task.planner.sampler} "
           f"{task.planner.sampler_steps}")  # fmt: skip

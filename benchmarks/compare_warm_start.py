@@ -17,60 +17,38 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
+from trained_workspace import add_workspace_args, load_trained
 
-from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import params_from_dict, set_dotted
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, standard_error
-from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
-from adaptdiffuser.io import read_json
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.stages.common import model_dir, reference_path, resolve_device
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("workspace", type=Path)
-    parser.add_argument("--task", default=None, help="a value-guided task of params (default: the evolved task)")
+    add_workspace_args(parser)
     parser.add_argument("--warm-steps", type=int, nargs="+", default=[2, 4, 8])
-    parser.add_argument("--seed", type=int, default=7, help="episode seed (default 7: validation, not evaluation)")
-    parser.add_argument("--episodes", type=int, default=None, help="default: the task's evaluate.episodes")
-    parser.add_argument("--phase", type=int, default=0)
-    parser.add_argument("--training-seed", type=int, default=0)
-    parser.add_argument("--device", default="auto")
     args = parser.parse_args()
-    root = args.workspace.resolve()
-    raw = yaml.safe_load((root / "params.yaml").read_text())
-    name = args.task or raw.get("evolve") or raw["tasks"][0]
-    raw = set_dotted(raw, f"task.{name}.evaluate.seed", args.seed)
-    if args.episodes is not None:
-        raw = set_dotted(raw, f"task.{name}.evaluate.episodes", args.episodes)
-    device = resolve_device(args.device)
-    base = params_from_dict(raw).resolve(name)
+    ws = load_trained(args)
+    base = ws.task()
     family = get_family(base.family)
-    model = model_dir(name, args.phase, args.training_seed)
-    bundle = load_bundle(root / model, device)
-    ref = read_json(root / reference_path(name), f"reference scores of {name}")
-    files = TaskFiles(root, name, model, args.training_seed)
-    ev = base.evaluate
-    print(f"{name} phase {args.phase} (training seed {args.training_seed}), {ev.episodes} episodes from seed "
+    ref, files, ev = ws.reference(), ws.files(), base.evaluate
+    print(f"{ws.name} phase {args.phase} (training seed {args.training_seed}), {ev.episodes} episodes from seed "
           f"{args.seed}, {base.planner.sampler} {base.planner.sampler_steps}, torch threads "
           f"{torch.get_num_threads()}")  # fmt: skip
 
     scores: dict[int | None, np.ndarray] = {}
     for warm in [None, *args.warm_steps]:
-        task = params_from_dict(set_dotted(raw, f"task.{name}.guide.warm_start_step", warm)).resolve(name)
-        planner = Planner(bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), device)
+        task = ws.task("guide.warm_start_step", warm)
+        planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
         start = time.perf_counter()
         result = run_episodes(
             lambda task=task: family.make_simulator(task),
-            family.controller(task, planner, files, device),
+            family.controller(task, planner, files, ws.device),
             ev.episodes,
             ev.seed,
             ev.batch_size,
