@@ -73,14 +73,7 @@ def main() -> None:
     device = resolve_device(args.device)
     maze = maze_paths(args.params, args.task, device)
     task, gen = maze.task, maze.generation
-    model = maze.bundle.diffusion.to(device).train()
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
-    x, cond = maze.training_batch(device)
-
-    def train_step() -> None:
-        model.loss(x, cond).backward()
-        optimizer.step()
-        optimizer.zero_grad()
+    train_step = maze.training_step(device)
 
     pl = task.planner
     decision = maze.planner(pl.sampler, pl.sampler_steps, device)
@@ -92,7 +85,7 @@ def main() -> None:
     decide = loco.decision()
     lp = loco.task.planner
     paths = {
-        f"training step (batch {x.shape[0]})": train_step,
+        f"training step (batch {task.pretrain.batch_size})": train_step,
         f"U-Maze decision, batch 1 ({pl.sampler} {pl.sampler_steps})": lambda: decision.plan(
             maze.start, maze.goal, [0]
         ),

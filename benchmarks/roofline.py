@@ -68,21 +68,14 @@ def main() -> None:
     args = parser.parse_args()
     device = resolve_device(args.device)
     maze = maze_paths(args.params, args.task, device)
-    model = maze.bundle.diffusion.to(device).train()
-    ema = maze.bundle.ema.to(device).eval()
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
-    x, cond = maze.training_batch(device)
-
-    def train_step() -> None:
-        model.loss(x, cond).backward()
-        optimizer.step()
-        optimizer.zero_grad()
+    train_step = maze.training_step(device)
+    model, ema = maze.bundle.diffusion, maze.bundle.ema.to(device).eval()
 
     gen = maze.generation
     planner = maze.planner(gen.sampler, gen.sampler_steps, device)
     starts, goals, seeds = maze.start.repeat(args.batch, 0), maze.goal.repeat(args.batch, 0), list(range(args.batch))
     paths = {
-        f"training step (batch {x.shape[0]})": (train_step, 10),
+        f"training step (batch {maze.task.pretrain.batch_size})": (train_step, 10),
         f"batched plan ({args.batch} plans, {gen.sampler} {gen.sampler_steps})": (
             lambda: planner.sample(starts, goals, seeds),
             1,

@@ -54,6 +54,19 @@ class MazePaths:
         x = x.to(device)
         return x, {0: x[:, 0, model.act_dim :], model.horizon - 1: x[:, -1, model.act_dim :]}
 
+    def training_step(self, device: torch.device) -> Callable[[], None]:
+        """One training step of the planner's model on :meth:`training_batch` (Adam, as the trainers use it)."""
+        model = self.bundle.diffusion.to(device).train()
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
+        x, cond = self.training_batch(device)
+
+        def step() -> None:
+            model.loss(x, cond).backward()
+            optimizer.step()
+            optimizer.zero_grad()
+
+        return step
+
     def files(self) -> TaskFiles:
         return TaskFiles(Path("."), self.task.name, model_dir(self.task.name, 0, 0), 0)
 
