@@ -22,13 +22,12 @@ the pipeline runs the plain eager network, see the README's speed section).
 from __future__ import annotations
 
 import argparse
-import statistics
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import torch
-from speed_paths import locomotion_paths, maze_paths
+from speed_paths import alternate, locomotion_paths, maze_paths
 
 from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.stages.common import resolve_device
@@ -57,14 +56,14 @@ def main() -> None:
     model = maze.bundle.diffusion.to(device).train()
     x, cond = maze.training_batch(device)
     steps = {
-        "plain": _train_step(model, torch.optim.Adam(model.parameters(), lr=1e-5), x, cond),
-        "fused": _train_step(model, torch.optim.Adam(model.parameters(), lr=1e-5, fused=True), x, cond),
+        "plain": maze.training_step(device),
+        "fused": maze.training_step(device, fused=True),
     }
     if args.compile:
         compiled = torch.compile(model.model)
         steps["compiled"], compile_s = _compiled_train_step(model, compiled, x, cond)
         print(f"torch.compile of the training step: {compile_s:.0f} s")
-    train_ms = _alternate(steps, args.rounds, device, calls=10)
+    train_ms = alternate(steps, args.rounds, device, calls=10)
     for name, ms in train_ms.items():
         print(f"training step, batch {x.shape[0]}, {name}: {ms:.1f} ms ({1000 / ms:.1f} steps/s)")
     speedup_train = 1.0  # the trainers use the plain path: neither alternative pays (README "Speed")
@@ -92,7 +91,7 @@ def main() -> None:
                 return planner.sample(starts, goals, seeds)
 
         sampling["compiled"] = compiled_sample
-    sample_ms = _alternate(sampling, args.rounds, device, calls=1)
+    sample_ms = alternate(sampling, args.rounds, device, calls=1)
     for name, ms in sample_ms.items():
         print(f"batched sampling, {args.batch} plans, {gen.sampler} {gen.sampler_steps}, {name}: {ms:.0f} ms")
     speedup_sampling = 1.0  # the pipeline samples with the plain eager network (see the README's speed section)
@@ -108,7 +107,7 @@ def main() -> None:
         "ddim 16 (earlier profiles)": (maze.planner("ddim", 16, device), None),
         f"ddpm {n_steps} (the full chain)": (maze.planner("ddpm", n_steps, device), None),
     }
-    decision_ms = _alternate(
+    decision_ms = alternate(
         {name: (lambda p=p, g=g: p.plan(maze.start, maze.goal, [0], guidance=g)) for name, (p, g) in decisions.items()},
         args.rounds,
         device,
@@ -128,14 +127,14 @@ def main() -> None:
     loco = locomotion_paths(device, args.episodes, args.samples)
     decide = loco.decision()
     decide(0)
-    loco_s = _alternate({"profile": lambda: decide(1)}, args.rounds, device, calls=1)["profile"] / 1000
+    loco_s = alternate({"profile": lambda: decide(1)}, args.rounds, device, calls=1)["profile"] / 1000
     lp, guide = loco.task.planner, loco.task.settings.guide
     start = "pure noise" if guide.warm_start_step is None else f"the last plan noised to step {guide.warm_start_step}"
     print(f"locomotion decision, {args.episodes} episodes x {args.samples} samples, {lp.sampler} {lp.sampler_steps}, "
           f"{guide.n_guide_steps} value-gradient steps, from {start}: {loco_s:.2f} s")  # fmt: skip
     cold = locomotion_paths(device, args.episodes, args.samples, warm_start=False).decision()
     cold(0)
-    cold_s = _alternate({"cold": lambda: cold(1)}, args.rounds, device, calls=1)["cold"] / 1000
+    cold_s = alternate({"cold": lambda: cold(1)}, args.rounds, device, calls=1)["cold"] / 1000
     print(f"the same from pure noise every decision (Diffuser): {cold_s:.2f} s")
 
     # generation throughput
@@ -150,15 +149,6 @@ def main() -> None:
     print(f"speedup_train={speedup_train:.3f}")
     print(f"speedup_sampling={speedup_sampling:.3f}")
     print(f"locomotion_decision_s={loco_s:.3f}")
-
-
-def _train_step(model, optimizer, x, cond) -> Callable[[], None]:
-    def step() -> None:
-        model.loss(x, cond).backward()
-        optimizer.step()
-        optimizer.zero_grad()
-
-    return step
 
 
 def _compiled_train_step(model, compiled, x, cond) -> tuple[Callable[[], None], float]:
@@ -184,30 +174,6 @@ def _network(diffusion, network) -> Iterator[None]:
         yield
     finally:
         diffusion.model = own
-
-
-def _alternate(
-    functions: dict[str, Callable[[], object]], rounds: int, device: torch.device, calls: int
-) -> dict[str, float]:
-    """Median milliseconds per call of each function: ``rounds`` rounds, each timing ``calls`` calls of every
-    function in turn, after one warm-up call each."""
-    times: dict[str, list[float]] = {name: [] for name in functions}
-    for f in functions.values():
-        f()
-    for _ in range(rounds):
-        for name, f in functions.items():
-            _sync(device)
-            begin = time.perf_counter()
-            for _ in range(calls):
-                f()
-            _sync(device)
-            times[name].append(1000 * (time.perf_counter() - begin) / calls)
-    return {name: statistics.median(values) for name, values in times.items()}
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize()
 
 
 if __name__ == "__main__":

@@ -18,8 +18,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import torch
-from bench_speed import _alternate
-from speed_paths import maze_paths
+from speed_paths import alternate, maze_paths
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
@@ -30,7 +29,7 @@ def matmul_gflops(device: torch.device, size: int = 2048, rounds: int = 9) -> fl
     """Median float32 GFLOP/s of a ``size`` x ``size`` matrix product on the current torch threads."""
     a = torch.randn(size, size, device=device)
     b = torch.randn(size, size, device=device)
-    seconds = _alternate({"matmul": lambda: a @ b}, rounds, device, calls=3)["matmul"] / 1000
+    seconds = alternate({"matmul": lambda: a @ b}, rounds, device, calls=3)["matmul"] / 1000
     return 2 * size**3 / seconds / 1e9
 
 
@@ -91,7 +90,7 @@ def main() -> None:
             with without_norm_and_activation(model, ema):
                 fn()
 
-        ms = _alternate({"network": fn, "stripped": stripped}, args.rounds, device, calls=calls)
+        ms = alternate({"network": fn, "stripped": stripped}, args.rounds, device, calls=calls)
         print(f"\n{name}: {ms['network']:.1f} ms per call; without GroupNorm and Mish {ms['stripped']:.1f} ms")
         print(f"  convolutions: {flops / 1e9:.2f} GFLOP per call, at least {flops / 1e6 / ms['stripped']:.0f} GFLOP/s")
         print(f"  bound_free_rest={ms['network'] / ms['stripped']:.2f}  (GroupNorm and Mish free)")

@@ -1,4 +1,4 @@
-"""The real paths the speed benchmarks time and profile, built once for both scripts (not a benchmark itself).
+"""The real paths the speed benchmarks time and profile, and their timing helper (not a benchmark itself).
 
 A Maze2D task's planner (the trained phase-0 model of the workspace when `dvc repro` has made it, else an
 untrained model of the profile's shape) and a locomotion task's value-guided controller (networks of the shapes of
@@ -7,7 +7,9 @@ untrained model of the profile's shape) and a locomotion task's value-guided con
 
 from __future__ import annotations
 
+import statistics
 import tempfile
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -54,10 +56,11 @@ class MazePaths:
         x = x.to(device)
         return x, {0: x[:, 0, model.act_dim :], model.horizon - 1: x[:, -1, model.act_dim :]}
 
-    def training_step(self, device: torch.device) -> Callable[[], None]:
-        """One training step of the planner's model on :meth:`training_batch` (Adam, as the trainers use it)."""
+    def training_step(self, device: torch.device, fused: bool = False) -> Callable[[], None]:
+        """One training step of the planner's model on :meth:`training_batch` (Adam, as the trainers use it, or
+        its fused kernel)."""
         model = self.bundle.diffusion.to(device).train()
-        optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, fused=fused)
         x, cond = self.training_batch(device)
 
         def step() -> None:
@@ -153,3 +156,28 @@ def locomotion_paths(
     obs = np.stack([s.reset(np.random.default_rng(i)) for i, s in enumerate(sims)])
     controller.begin(sims, obs, list(range(episodes)))
     return LocomotionPaths(task, controller, sims, obs)
+
+
+def alternate(
+    functions: dict[str, Callable[[], object]], rounds: int, device: torch.device, calls: int
+) -> dict[str, float]:
+    """Median milliseconds per call of each function: ``rounds`` rounds, each timing ``calls`` calls of every
+    function in turn, after one warm-up call each."""
+    times: dict[str, list[float]] = {name: [] for name in functions}
+    for f in functions.values():
+        f()
+    for _ in range(rounds):
+        for name, f in functions.items():
+            sync(device)
+            begin = time.perf_counter()
+            for _ in range(calls):
+                f()
+            sync(device)
+            times[name].append(1000 * (time.perf_counter() - begin) / calls)
+    return {name: statistics.median(values) for name, values in times.items()}
+
+
+def sync(device: torch.device) -> None:
+    """Wait for the device's queued work (CUDA); nothing on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize()
