@@ -23,6 +23,7 @@ from adaptdiffuser.config import PretrainParams
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
 from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.io import atomic_path
+from adaptdiffuser.models.compiled import compile_network
 
 LogFn = Callable[[int, float], None]
 OPTIMIZER_MODES = ("restart", "carry")
@@ -106,17 +107,21 @@ def train(
     on_log: LogFn | None = None,
     progress: bool = True,
     optimizer_state: dict[str, Any] | None = None,
+    compiled: bool = False,
 ) -> list[tuple[int, float]]:
     """Train ``bundle`` in place for ``cfg.steps`` steps; resume from ``resume_path`` if it matches ``run_id``.
 
     The raw weights (``bundle.diffusion``) are trained and the EMA follows them. Adam starts fresh, or from
     ``optimizer_state`` (a ``bundle.optimizer`` record, see ``carried_optimizer``: the moments of these same raw
     weights, with its step count, so the bias correction continues too; this run's ``cfg.lr`` replaces the saved
-    learning rate). At the end ``bundle.optimizer`` holds the Adam state. Returns the logged ``(step, loss)`` pairs
-    of the whole run (including those before a resume).
+    learning rate). At the end ``bundle.optimizer`` holds the Adam state. With ``compiled`` the raw network
+    runs under ``torch.compile`` (the first step compiles; weights and checkpoints as without). Returns the logged
+    ``(step, loss)`` pairs of the whole run (including those before a resume).
     """
     model, ema = bundle.diffusion.to(device), bundle.ema.to(device)
     model.train()
+    if compiled:
+        compile_network(model.model, device, "compile.training")
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     if optimizer_state is not None:
         optimizer.load_state_dict(copy.deepcopy(optimizer_state["adam"]))  # never update the caller's record

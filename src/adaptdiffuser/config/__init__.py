@@ -18,6 +18,7 @@ from adaptdiffuser.config.phases import PhaseParams
 from adaptdiffuser.config.profiles import apply_profile, deep_merge
 from adaptdiffuser.config.sections import (
     SELECTION_RULES,
+    CompileParams,
     DiffusionParams,
     DiscriminateParams,
     EvaluateParams,
@@ -35,6 +36,7 @@ __all__ = [
     "GENERIC_SECTIONS",
     "SELECTION_RULES",
     "SWEEP_OBJECTIVES",
+    "CompileParams",
     "ConfigError",
     "DiffusionParams",
     "DiscriminateParams",

@@ -7,7 +7,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from adaptdiffuser.models.unet import ResidualTemporalBlock, down_path, time_embedding
+from adaptdiffuser.models.unet import Mish, ResidualTemporalBlock, down_path, time_embedding
 
 
 def _halve(length: int) -> int:
@@ -58,7 +58,7 @@ class ValueNetwork(nn.Module):
         self.mid_down2 = nn.Conv1d(mid3, mid3, 3, stride=2, padding=1)
         fc_dim = mid3 * _halve(_halve(length))
         hidden = max(fc_dim // 2, dim)
-        self.head = nn.Sequential(nn.Linear(fc_dim + dim, hidden), nn.Mish(), nn.Linear(hidden, 1))
+        self.head = nn.Sequential(nn.Linear(fc_dim + dim, hidden), Mish(), nn.Linear(hidden, 1))
 
     def config(self) -> dict[str, Any]:
         """The constructor arguments, JSON-able, to rebuild this network."""

@@ -3,6 +3,7 @@ its protocol; results, pictures and metrics, and for a control the paired gain o
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
@@ -84,12 +85,13 @@ def evaluate_seed(
         "planner": task.section("planner"),
         "evaluate": task.section("evaluate"),
         "model": {"path": str(model), "data": bundle.config.get("data", {})},
+        "compile": asdict(params.compile),
         "seed": seed,
     }
     name = phase_name(phase, control)
     with stage_run(task.name, "evaluate-control" if control else "evaluate", phase, logged, root, seed=seed):
         files = TaskFiles(root, task.name, model, seed)
-        planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
+        planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device, params.compile.sampling)
         controller = family.controller(task, planner, files, device)
         result = run_episodes(
             lambda: family.make_simulator(task),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
@@ -70,12 +71,13 @@ def evaluate_coin_seed(
         "gold_coin": task.section("gold_coin"),
         "alpha": params.alpha,
         "planner": task.section("planner"),
+        "compile": asdict(params.compile),
         "seed": seed,
     }
     with stage_run(task.name, "evaluate-coin", phase, logged, root, seed=seed):
         env = family.make_simulator(task)
         cases = coin_cases(env, gc.cases_per_kind, np.random.default_rng(gc.seed))
-        planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
+        planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device, params.compile.sampling)
         coins = torch.as_tensor(cases.coins, dtype=torch.float32, device=device)
 
         def guidance_for(episodes: list[int]):

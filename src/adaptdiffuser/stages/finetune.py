@@ -90,6 +90,7 @@ def finetune_seed(
         "train": asdict(train_cfg),
         "model": {"path": str(source), "phase": cfg.previous},
         "data": {"expert": expert_info, "synthetic": synthetic_info},
+        "compile": asdict(params.compile),
         "seed": seed,
     }
     stage = "control" if control else "finetune"
@@ -112,6 +113,7 @@ def finetune_seed(
             progress=progress,
             on_log=lambda step, loss: mlflow.log_metric("train_loss", loss, step=step),
             optimizer_state=carried_optimizer(bundle, cfg.finetune.optimizer, str(source)),
+            compiled=params.compile.training,
         )
         bundle.config = {
             **bundle.config,

@@ -38,7 +38,13 @@ def generate_seed(
     source = model_dir(task.name, cfg.previous, seed)
     bundle = load_bundle(root / source, device)
     generation_seed = training_seed(derive_seed(g.seed, phase), seed)
-    logged = {"generate": asdict(g), "alpha": params.alpha, "model": {"path": str(source)}, "seed": seed}
+    logged = {
+        "generate": asdict(g),
+        "alpha": params.alpha,
+        "model": {"path": str(source)},
+        "compile": asdict(params.compile),
+        "seed": seed,
+    }
     generator = {
         "stage": "generate",
         "phase": phase,
@@ -48,7 +54,7 @@ def generate_seed(
         **asdict(g),
     }
     with stage_run(task.name, "generate", phase, logged, root, seed=seed):
-        planner = Planner(bundle, make_sampler(g.sampler, g.sampler_steps), device)
+        planner = Planner(bundle, make_sampler(g.sampler, g.sampler_steps), device, params.compile.sampling)
         files = TaskFiles(root, task.name, source, seed)
         family = get_family(task.family)
         traj, stats = family.generate(task, planner, files, g, params.alpha, generation_seed, generator, progress)

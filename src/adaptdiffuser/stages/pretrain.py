@@ -60,6 +60,7 @@ def pretrain_seed(
         "diffusion": task.section("diffusion"),
         "pretrain": asdict(train_cfg),
         "data": {"expert": expert},
+        "compile": asdict(params.compile),
         "seed": seed,
     }
     with stage_run(task.name, "pretrain", 0, logged, root, seed=seed):
@@ -100,6 +101,7 @@ def pretrain_seed(
             run_id=fingerprint(logged),
             progress=progress,
             on_log=lambda step, loss: mlflow.log_metric("train_loss", loss, step=step),
+            compiled=params.compile.training,
         )
         out = root / model_dir(task.name, 0, seed)
         save_bundle(out, bundle)
