@@ -1,30 +1,29 @@
-"""Speed of the plain eager path against the pipeline's path, on the same inputs in one run (printed, never
-asserted). Each pair is timed in alternating rounds and reported as the median round, so that a noisy neighbour
-slows both sides alike.
+"""Speed of the plain eager path against the fast path (the network under ``torch.compile``, params ``compile``),
+on the same inputs in one run (printed, never asserted). Each pair is timed in alternating rounds and reported as
+the median round, so that a noisy neighbour slows both sides alike. The first call of each compiled path is timed
+apart (compiling: tens of seconds, a few from inductor's on-disk cache).
 
-* training: a step of the profile's batch with ``torch.optim.Adam`` as the trainers use it (plain) and with its
-  fused kernel; with ``--compile`` also the network under ``torch.compile`` (its compile time printed);
-* batched sampling: a batch of ``--batch`` plans with the generation sampler; with ``--compile`` the network under
-  ``torch.compile`` (inductor, frozen weights) as well;
+* training: a step of the profile's batch with ``torch.optim.Adam`` as the trainers use it, eager and compiled
+  (``compile.training``);
+* batched sampling: a batch of ``--batch`` plans with the generation sampler, eager and compiled
+  (``compile.sampling``);
 * a U-Maze decision at batch 1 with the profile's planner (also with coin guidance), the 16-step DDIM planner of
   earlier profiles and the full DDPM chain; evaluation throughput (protocol episodes in one batch);
 * a locomotion decision (``quick-locomotion`` shapes: ``--episodes`` x ``--samples`` value-guided plans), as the
   profile plans (warm-started from the last plan) and from pure noise;
-* generation throughput of an evolution phase (plans/s, the profile's generation settings).
+* generation throughput of an evolution phase (plans/s, the profile's generation settings), eager and compiled.
 
 It ends with machine-readable lines ``decision_ms_umaze_b1=``, ``speedup_train=``, ``speedup_sampling=``,
-``locomotion_decision_s=`` (numbers only; the speedups are the pipeline's path over the plain eager one: 1.0 while
-the pipeline runs the plain eager network, see the README's speed section).
+``locomotion_decision_s=``, ``speedup_generation=`` (numbers only; speedups are eager time over compiled time).
 
-    python benchmarks/bench_speed.py [--params params.yaml] [--rounds 5] [--compile] [--device cpu]
+    python benchmarks/bench_speed.py [--params params.yaml] [--rounds 5] [--device cpu]
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 
 import torch
 from speed_paths import alternate, locomotion_paths, maze_paths
@@ -44,7 +43,6 @@ def main() -> None:
     parser.add_argument("--samples", type=int, default=64)
     parser.add_argument("--generate-tasks", type=int, default=512)
     parser.add_argument("--eval-episodes", type=int, default=50)
-    parser.add_argument("--compile", action="store_true", help="also time torch.compile (minutes of compiling)")
     args = parser.parse_args()
     device = resolve_device(args.device)
     maze = maze_paths(args.params, args.task, device)
@@ -52,49 +50,26 @@ def main() -> None:
     print(f"{task.name}: {maze.source}; device {device}, torch threads {torch.get_num_threads()}, "
           f"model dim {task.model.dim} mults {task.model.dim_mults}, horizon {task.diffusion.horizon}")  # fmt: skip
 
-    # training: plain Adam (the trainers'), its fused kernel, and optionally the compiled network
-    model = maze.bundle.diffusion.to(device).train()
-    x, cond = maze.training_batch(device)
-    steps = {
-        "plain": maze.training_step(device),
-        "fused": maze.training_step(device, fused=True),
-    }
-    if args.compile:
-        compiled = torch.compile(model.model)
-        steps["compiled"], compile_s = _compiled_train_step(model, compiled, x, cond)
-        print(f"torch.compile of the training step: {compile_s:.0f} s")
+    # training: the trainers' step, eager and compiled
+    batch = task.pretrain.batch_size
+    steps = {"plain": maze.training_step(device), "compiled": maze.training_step(device, compiled=True)}
+    print(f"compiling the training step: {_first_call_s(steps['compiled']):.0f} s")
     train_ms = alternate(steps, args.rounds, device, calls=10)
     for name, ms in train_ms.items():
-        print(f"training step, batch {x.shape[0]}, {name}: {ms:.1f} ms ({1000 / ms:.1f} steps/s)")
-    speedup_train = 1.0  # the trainers use the plain path: neither alternative pays (README "Speed")
+        print(f"training step, batch {batch}, {name}: {ms:.1f} ms ({1000 / ms:.1f} steps/s)")
+    speedup_train = train_ms["plain"] / train_ms["compiled"]
 
-    # batched sampling with the generation sampler
-    ema = maze.bundle.ema.to(device).eval()
+    # batched sampling with the generation sampler, eager and compiled
     gen = maze.generation
-    planner = maze.planner(gen.sampler, gen.sampler_steps, device)
     starts, goals = maze.start.repeat(args.batch, 0), maze.goal.repeat(args.batch, 0)
     seeds = list(range(args.batch))
-    sampling = {"plain": lambda: planner.sample(starts, goals, seeds)}
-    if args.compile:
-        import torch._inductor.config as inductor_config
-
-        inductor_config.freezing = True
-        compiled_net = torch.compile(ema.model)
-        with torch.no_grad():
-            begin = time.perf_counter()
-            compiled_net(torch.zeros(args.batch, ema.horizon, ema.transition_dim, device=device),
-                         torch.zeros(args.batch, dtype=torch.long, device=device))  # fmt: skip
-            print(f"torch.compile of the sampling network (batch {args.batch}): {time.perf_counter() - begin:.0f} s")
-
-        def compiled_sample():
-            with _network(ema, compiled_net):
-                return planner.sample(starts, goals, seeds)
-
-        sampling["compiled"] = compiled_sample
+    planners = {name: maze.planner(gen.sampler, gen.sampler_steps, device, name == "compiled") for name in steps}
+    sampling = {name: (lambda p=p: p.sample(starts, goals, seeds)) for name, p in planners.items()}
+    print(f"compiling the sampling network (batch {args.batch}): {_first_call_s(sampling['compiled']):.0f} s")
     sample_ms = alternate(sampling, args.rounds, device, calls=1)
     for name, ms in sample_ms.items():
         print(f"batched sampling, {args.batch} plans, {gen.sampler} {gen.sampler_steps}, {name}: {ms:.0f} ms")
-    speedup_sampling = 1.0  # the pipeline samples with the plain eager network (see the README's speed section)
+    speedup_sampling = sample_ms["plain"] / sample_ms["compiled"]
 
     # a U-Maze decision at batch 1
     pl = task.planner
@@ -137,43 +112,28 @@ def main() -> None:
     cold_s = alternate({"cold": lambda: cold(1)}, args.rounds, device, calls=1)["cold"] / 1000
     print(f"the same from pure noise every decision (Diffuser): {cold_s:.2f} s")
 
-    # generation throughput
-    generate = maze.generate(device, args.generate_tasks)
-    begin = time.perf_counter()
-    generate()
-    gen_s = time.perf_counter() - begin
-    print(f"generation: {args.generate_tasks / gen_s:.1f} plans/s ({gen.sampler} {gen.sampler_steps}, batch "
-          f"{gen.batch_size}, coin fraction {gen.coin_fraction})")  # fmt: skip
+    # generation throughput, eager and compiled (each a fresh planner: the compiled one's first batches compile)
+    plans_s = {}
+    for name in steps:
+        generate = maze.generate(device, args.generate_tasks, compiled=name == "compiled")
+        begin = time.perf_counter()
+        generate()
+        plans_s[name] = args.generate_tasks / (time.perf_counter() - begin)
+        print(f"generation, {name}: {plans_s[name]:.1f} plans/s ({gen.sampler} {gen.sampler_steps}, batch "
+              f"{gen.batch_size}, coin fraction {gen.coin_fraction}; compiling included)")  # fmt: skip
 
     print(f"decision_ms_umaze_b1={decision_ms[f'profile {pl.sampler} {pl.sampler_steps}']:.2f}")
     print(f"speedup_train={speedup_train:.3f}")
     print(f"speedup_sampling={speedup_sampling:.3f}")
     print(f"locomotion_decision_s={loco_s:.3f}")
+    print(f"speedup_generation={plans_s['compiled'] / plans_s['plain']:.3f}")
 
 
-def _compiled_train_step(model, compiled, x, cond) -> tuple[Callable[[], None], float]:
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
-
-    def step() -> None:
-        with _network(model, compiled):
-            model.loss(x, cond).backward()
-        optimizer.step()
-        optimizer.zero_grad()
-
+def _first_call_s(fn: Callable[[], object]) -> float:
+    """Seconds of one call of ``fn`` (a compiled path's first call: compiling)."""
     begin = time.perf_counter()
-    step()
-    return step, time.perf_counter() - begin
-
-
-@contextmanager
-def _network(diffusion, network) -> Iterator[None]:
-    """Run ``diffusion`` with ``network`` (e.g. its compiled twin) in place of its own for the duration."""
-    own = diffusion.model
-    diffusion.model = network
-    try:
-        yield
-    finally:
-        diffusion.model = own
+    fn()
+    return time.perf_counter() - begin
 
 
 if __name__ == "__main__":

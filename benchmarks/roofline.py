@@ -22,6 +22,7 @@ from speed_paths import alternate, maze_paths
 from torch import nn
 from torch.utils.flop_counter import FlopCounterMode
 
+from adaptdiffuser.models.unet import Mish
 from adaptdiffuser.stages.common import resolve_device
 
 
@@ -47,7 +48,7 @@ def without_norm_and_activation(*modules: nn.Module) -> Iterator[None]:
     for module in modules:
         for parent in module.modules():
             for name, child in parent.named_children():
-                if isinstance(child, nn.GroupNorm | nn.Mish):
+                if isinstance(child, nn.GroupNorm | Mish):
                     swapped.append((parent, name, child))
                     setattr(parent, name, nn.Identity())
     try:

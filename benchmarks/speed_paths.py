@@ -7,6 +7,7 @@ untrained model of the profile's shape) and a locomotion task's value-guided con
 
 from __future__ import annotations
 
+import copy
 import statistics
 import tempfile
 import time
@@ -25,6 +26,7 @@ from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.models.compiled import compile_network
 from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.planning import Planner, ValuePlanningController
 from adaptdiffuser.stages.common import model_dir
@@ -45,8 +47,10 @@ class MazePaths:
     coin: torch.Tensor
     alpha: float
 
-    def planner(self, sampler: str, steps: int, device: torch.device) -> Planner:
-        return Planner(self.bundle, make_sampler(sampler, steps), device)
+    def planner(self, sampler: str, steps: int, device: torch.device, compiled: bool = False) -> Planner:
+        """The bundle's planner; ``compiled``: a copy of its EMA network under ``torch.compile`` (the fast path)."""
+        bundle = replace(self.bundle, ema=copy.deepcopy(self.bundle.ema)) if compiled else self.bundle
+        return Planner(bundle, make_sampler(sampler, steps), device, compiled=compiled)
 
     def training_batch(self, device: torch.device) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
         """A fixed batch of the profile's size and its start/goal inpainting conditions."""
@@ -56,10 +60,13 @@ class MazePaths:
         x = x.to(device)
         return x, {0: x[:, 0, model.act_dim :], model.horizon - 1: x[:, -1, model.act_dim :]}
 
-    def training_step(self, device: torch.device, fused: bool = False) -> Callable[[], None]:
+    def training_step(self, device: torch.device, fused: bool = False, compiled: bool = False) -> Callable[[], None]:
         """One training step of the planner's model on :meth:`training_batch` (Adam, as the trainers use it, or
-        its fused kernel)."""
+        its fused kernel); ``compiled``: a copy of the model with its network under ``torch.compile``."""
         model = self.bundle.diffusion.to(device).train()
+        if compiled:
+            model = copy.deepcopy(model)
+            compile_network(model.model, device, "compile.training")
         optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, fused=fused)
         x, cond = self.training_batch(device)
 
@@ -73,10 +80,10 @@ class MazePaths:
     def files(self) -> TaskFiles:
         return TaskFiles(Path("."), self.task.name, model_dir(self.task.name, 0, 0), 0)
 
-    def generate(self, device: torch.device, tasks: int) -> Callable[[], object]:
+    def generate(self, device: torch.device, tasks: int, compiled: bool = False) -> Callable[[], object]:
         """One call of the family's generation (``tasks`` plans of the profile's generation settings)."""
         g = replace(self.generation, tasks=tasks)
-        planner = self.planner(g.sampler, g.sampler_steps, device)
+        planner = self.planner(g.sampler, g.sampler_steps, device, compiled)
         family = get_family(self.task.family)
         return lambda: family.generate(self.task, planner, self.files(), g, self.alpha, 0, {}, False)
 
