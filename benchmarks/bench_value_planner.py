@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 import torch
+from speed_paths import sync
 
 from adaptdiffuser.checkpoint import load_bundle, make_bundle
 from adaptdiffuser.config import load_params
@@ -64,20 +65,15 @@ def main() -> None:
             controller = ValuePlanningController(planner, guidance, n, seed=0)
             controller.begin(sims, obs, list(range(episodes)))
             controller.act(sims, obs, 0)  # warm-up
-            _sync(device)
+            sync(device)
             start = time.perf_counter()
             for t in range(args.repeats):
                 controller.act(sims, obs, t + 1)
-            _sync(device)
+            sync(device)
             ms = 1000 * (time.perf_counter() - start) / args.repeats
             minutes = ms * 1000 / 1000 / 60  # 1000 decisions per episode batch
             print(f"episodes {episodes:3d} x samples {n:3d}: {ms:8.1f} ms per decision "
                   f"({ms / episodes:7.1f} ms per episode-step; 1000 steps = {minutes:.1f} min)")  # fmt: skip
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize()
 
 
 if __name__ == "__main__":
