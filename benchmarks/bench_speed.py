@@ -71,14 +71,16 @@ def main() -> None:
         print(f"batched sampling, {args.batch} plans, {gen.sampler} {gen.sampler_steps}, {name}: {ms:.0f} ms")
     speedup_sampling = sample_ms["plain"] / sample_ms["compiled"]
 
-    # a U-Maze decision at batch 1
+    # a U-Maze decision at batch 1 (the profile's planner, eager or compiled as compile.sampling says, and the other)
     pl = task.planner
-    profile_planner = maze.planner(pl.sampler, pl.sampler_steps, device)
+    profile_planner = maze.planner(pl.sampler, pl.sampler_steps, device, maze.compile_sampling)
     coin = profile_planner.guidance(CoinObjective(maze.coin), maze.alpha)
+    other = maze.planner(pl.sampler, pl.sampler_steps, device, not maze.compile_sampling)
     n_steps = task.diffusion.n_steps
     decisions = {
         f"profile {pl.sampler} {pl.sampler_steps}": (profile_planner, None),
         f"profile {pl.sampler} {pl.sampler_steps} with coin guidance": (profile_planner, coin),
+        f"{pl.sampler} {pl.sampler_steps}, {'eager' if maze.compile_sampling else 'compiled'}": (other, None),
         "ddim 16 (earlier profiles)": (maze.planner("ddim", 16, device), None),
         f"ddpm {n_steps} (the full chain)": (maze.planner("ddpm", n_steps, device), None),
     }

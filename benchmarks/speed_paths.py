@@ -46,6 +46,7 @@ class MazePaths:
     goal: np.ndarray
     coin: torch.Tensor
     alpha: float
+    compile_sampling: bool  # params compile.sampling: whether the profile's planner runs compiled
 
     def planner(self, sampler: str, steps: int, device: torch.device, compiled: bool = False) -> Planner:
         """The bundle's planner; ``compiled``: a copy of its EMA network under ``torch.compile`` (the fast path)."""
@@ -90,7 +91,7 @@ class MazePaths:
     def evaluate(self, device: torch.device, episodes: int) -> Callable[[], object]:
         """``episodes`` protocol episodes in one batch with the profile's planner and the family's controller."""
         pl = self.task.planner
-        planner = self.planner(pl.sampler, pl.sampler_steps, device)
+        planner = self.planner(pl.sampler, pl.sampler_steps, device, self.compile_sampling)
         family = get_family(self.task.family)
         controller = family.controller(self.task, planner, self.files(), device)
         make_env = lambda: family.make_simulator(self.task)  # noqa: E731
@@ -113,7 +114,8 @@ def maze_paths(params_path: str, task_name: str | None, device: torch.device) ->
     coin = torch.as_tensor(env.cell_to_xy(env.layout.free_cells[0])[None], dtype=torch.float32, device=device)
     start = env.reset(np.random.default_rng(0))[None]
     generation = params.phase(1).generate
-    return MazePaths(task, generation, bundle, source, start, env.goal_state()[None], coin, max(params.alpha, 1.0))
+    goal, alpha = env.goal_state()[None], max(params.alpha, 1.0)
+    return MazePaths(task, generation, bundle, source, start, goal, coin, alpha, params.compile.sampling)
 
 
 @dataclass
