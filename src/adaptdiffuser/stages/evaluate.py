@@ -3,7 +3,6 @@ its protocol; results, pictures and metrics, and for a control the paired gain o
 
 from __future__ import annotations
 
-from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
@@ -85,7 +84,7 @@ def evaluate_seed(
         "planner": task.section("planner"),
         "evaluate": task.section("evaluate"),
         "model": {"path": str(model), "data": bundle.config.get("data", {})},
-        "compile": asdict(params.compile),
+        "compile": {"sampling": params.compile.sampling},
         "seed": seed,
     }
     name = phase_name(phase, control)

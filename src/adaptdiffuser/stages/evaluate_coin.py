@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
@@ -71,7 +70,7 @@ def evaluate_coin_seed(
         "gold_coin": task.section("gold_coin"),
         "alpha": params.alpha,
         "planner": task.section("planner"),
-        "compile": asdict(params.compile),
+        "compile": {"sampling": params.compile.sampling},
         "seed": seed,
     }
     with stage_run(task.name, "evaluate-coin", phase, logged, root, seed=seed):

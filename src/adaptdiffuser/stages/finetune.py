@@ -90,7 +90,7 @@ def finetune_seed(
         "train": asdict(train_cfg),
         "model": {"path": str(source), "phase": cfg.previous},
         "data": {"expert": expert_info, "synthetic": synthetic_info},
-        "compile": asdict(params.compile),
+        "compile": {"training": params.compile.training},
         "seed": seed,
     }
     stage = "control" if control else "finetune"

@@ -42,7 +42,7 @@ def generate_seed(
         "generate": asdict(g),
         "alpha": params.alpha,
         "model": {"path": str(source)},
-        "compile": asdict(params.compile),
+        "compile": {"sampling": params.compile.sampling},
         "seed": seed,
     }
     generator = {

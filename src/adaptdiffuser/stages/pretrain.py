@@ -60,7 +60,7 @@ def pretrain_seed(
         "diffusion": task.section("diffusion"),
         "pretrain": asdict(train_cfg),
         "data": {"expert": expert},
-        "compile": asdict(params.compile),
+        "compile": {"training": params.compile.training},
         "seed": seed,
     }
     with stage_run(task.name, "pretrain", 0, logged, root, seed=seed):
