@@ -102,7 +102,7 @@ def test_compiling_without_a_cpp_compiler_names_the_setting(monkeypatch: pytest.
         compile_network(torch.nn.Linear(2, 2), CPU, "compile.sampling")
 
 
-def test_compile_settings_are_params_with_a_fast_default() -> None:
+def test_compile_settings_are_validated_params_off_by_default_in_the_library() -> None:
     assert Params().compile.training is False  # the library's default; the profiles choose (README "Speed")
     with pytest.raises((ConfigError, ValueError), match="compile"):
         Params(compile={"training": "sometimes"})
