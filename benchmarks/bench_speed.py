@@ -31,6 +31,8 @@ from speed_paths import alternate, locomotion_paths, maze_paths
 from adaptdiffuser.diffusion.guidance import CoinObjective
 from adaptdiffuser.stages.common import resolve_device
 
+PATHS = ("plain", "compiled")  # the eager network and the fast path, timed side by side
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -52,7 +54,7 @@ def main() -> None:
 
     # training: the trainers' step, eager and compiled
     batch = task.pretrain.batch_size
-    steps = {"plain": maze.training_step(device), "compiled": maze.training_step(device, compiled=True)}
+    steps = {name: maze.training_step(device, compiled=name == "compiled") for name in PATHS}
     print(f"compiling the training step: {_first_call_s(steps['compiled']):.0f} s")
     train_ms = alternate(steps, args.rounds, device, calls=10)
     for name, ms in train_ms.items():
@@ -63,7 +65,7 @@ def main() -> None:
     gen = maze.generation
     starts, goals = maze.start.repeat(args.batch, 0), maze.goal.repeat(args.batch, 0)
     seeds = list(range(args.batch))
-    planners = {name: maze.planner(gen.sampler, gen.sampler_steps, device, name == "compiled") for name in steps}
+    planners = {name: maze.planner(gen.sampler, gen.sampler_steps, device, name == "compiled") for name in PATHS}
     sampling = {name: (lambda p=p: p.sample(starts, goals, seeds)) for name, p in planners.items()}
     print(f"compiling the sampling network (batch {args.batch}): {_first_call_s(sampling['compiled']):.0f} s")
     sample_ms = alternate(sampling, args.rounds, device, calls=1)
@@ -116,7 +118,7 @@ def main() -> None:
 
     # generation throughput, eager and compiled (each a fresh planner: the compiled one's first batches compile)
     plans_s = {}
-    for name in steps:
+    for name in PATHS:
         generate = maze.generate(device, args.generate_tasks, compiled=name == "compiled")
         begin = time.perf_counter()
         generate()

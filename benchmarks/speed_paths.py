@@ -61,14 +61,14 @@ class MazePaths:
         x = x.to(device)
         return x, {0: x[:, 0, model.act_dim :], model.horizon - 1: x[:, -1, model.act_dim :]}
 
-    def training_step(self, device: torch.device, fused: bool = False, compiled: bool = False) -> Callable[[], None]:
-        """One training step of the planner's model on :meth:`training_batch` (Adam, as the trainers use it, or
-        its fused kernel); ``compiled``: a copy of the model with its network under ``torch.compile``."""
+    def training_step(self, device: torch.device, compiled: bool = False) -> Callable[[], None]:
+        """One training step of the planner's model on :meth:`training_batch` (Adam, as the trainers use it);
+        ``compiled``: a copy of the model with its network under ``torch.compile``."""
         model = self.bundle.diffusion.to(device).train()
         if compiled:
             model = copy.deepcopy(model)
             compile_network(model.model, device, "compile.training")
-        optimizer = torch.optim.Adam(model.parameters(), lr=1e-5, fused=fused)
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-5)
         x, cond = self.training_batch(device)
 
         def step() -> None:
