@@ -61,21 +61,44 @@ def test_row_noise_rejects_bad_seeds(seeds: list) -> None:
         RowNoise(seeds)
 
 
+#: The batch-independence tests sample in float64. CPU convolutions and matmuls pick their kernels (and summation
+#: order) by batch size and by CPU, so in float32 the same row differs between batches in its last bits, and a
+#: sampler's steps amplify that by a factor that depends on the machine (up to 2.6e-4 seen on an AVX2-only CPU,
+#: under 1e-4 on AVX-512 ones). In float64 that rounding is about 1e-16 and stays far below ``ROW_ATOL`` on any
+#: CPU, while a row whose noise, conditions or guidance depended on its batch position would differ by order one.
+DTYPE = torch.float64
+ROW_ATOL = 1e-9
+
+
 def assert_same_rows(a: torch.Tensor, b: torch.Tensor) -> None:
-    """Equal up to float32 rounding: CPU convolutions and matmuls pick kernels by batch size, so the same row can
-    differ in its last bits between batches (about 1e-6 here, amplified a little along the chain); samples from
-    other noise differ by order one."""
-    torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+    """Equal up to float64 rounding (see ``ROW_ATOL``); samples from other noise differ by order one."""
+    assert a.dtype == b.dtype == DTYPE
+    torch.testing.assert_close(a, b, rtol=0.0, atol=ROW_ATOL)
 
 
-def _bundle(obs_dim: int = OBS, act_dim: int = ACT) -> ModelBundle:
+def _bundle(obs_dim: int = OBS, act_dim: int = ACT, dtype: torch.dtype = DTYPE) -> ModelBundle:
     torch.manual_seed(0)
     normalizer = MinMaxNormalizer(-np.ones(obs_dim + act_dim), np.ones(obs_dim + act_dim))
-    return make_bundle(TINY, DIFFUSION, obs_dim, act_dim, normalizer)
+    bundle = make_bundle(TINY, DIFFUSION, obs_dim, act_dim, normalizer)
+    bundle.ema.to(dtype)
+    return bundle
 
 
 def _diffusion() -> GaussianDiffusion:
     return _bundle().ema.eval()
+
+
+def test_the_float32_network_treats_each_row_alone() -> None:
+    """The network itself (the one path the float64 tests cannot see in float32) mixes no rows: one call on a
+    batch gives each row what it gives alone, up to one call's float32 rounding (about 1e-6; a network that mixed
+    rows, e.g. by batch statistics, would differ by order one)."""
+    diffusion = _bundle(dtype=torch.float32).ema.eval()
+    x = torch.randn(5, H, OBS + ACT, generator=torch.Generator().manual_seed(0))
+    t = torch.tensor([0, 3, 7, 5, 1])
+    with torch.no_grad():
+        batch = diffusion.model(x, t)
+        for r in range(5):
+            torch.testing.assert_close(diffusion.model(x[[r]], t[[r]]), batch[[r]], rtol=0.0, atol=1e-4)
 
 
 def _guidance(kind: str, rows: list[int]) -> GuidanceBase | None:
@@ -83,10 +106,11 @@ def _guidance(kind: str, rows: list[int]) -> GuidanceBase | None:
     if kind == "none":
         return None
     if kind == "coin":
-        coins = torch.tensor([[0.5, -0.5], [-0.5, 0.5], [0.0, 0.8], [0.8, 0.0]])[rows]
+        coins = torch.tensor([[0.5, -0.5], [-0.5, 0.5], [0.0, 0.8], [0.8, 0.0]], dtype=DTYPE)[rows]
         return Guidance(CoinObjective(coins), 0.5, lambda x: x[..., ACT:])
     torch.manual_seed(1)
-    return ValueGuidance(ValueNetwork(OBS + ACT, H, 8, (1, 2)).eval(), scale=0.5, n_guide_steps=2, t_stopgrad=0)
+    value = ValueNetwork(OBS + ACT, H, 8, (1, 2)).to(DTYPE).eval()
+    return ValueGuidance(value, scale=0.5, n_guide_steps=2, t_stopgrad=0)
 
 
 @pytest.mark.parametrize("guide", ["none", "coin", "value"])
@@ -94,11 +118,12 @@ def _guidance(kind: str, rows: list[int]) -> GuidanceBase | None:
 def test_a_rows_sample_is_the_same_alone_and_in_any_batch(sampler: Sampler, guide: str) -> None:
     diffusion = _diffusion()
     g = torch.Generator().manual_seed(3)
-    starts, goals = torch.rand(4, OBS, generator=g) * 2 - 1, torch.rand(4, OBS, generator=g) * 2 - 1
+    starts, goals = (torch.rand(4, OBS, generator=g, dtype=DTYPE) * 2 - 1 for _ in range(2))
 
     def draw(rows: list[int], guide: str = guide) -> torch.Tensor:
         conditions = {0: starts[rows], H - 1: goals[rows]}
-        return sampler.sample(diffusion, conditions, RowNoise([SEEDS[r] for r in rows]), _guidance(guide, rows))
+        noise = RowNoise([SEEDS[r] for r in rows], dtype=DTYPE)
+        return sampler.sample(diffusion, conditions, noise, _guidance(guide, rows))
 
     batch = draw([0, 1, 2, 3])
     assert batch.shape == (4, H, OBS + ACT) and not torch.equal(batch[0], batch[1])

@@ -103,18 +103,28 @@ def tiny_diffusion(horizon: int, n_steps: int = 10) -> GaussianDiffusion:
     return GaussianDiffusion(net, horizon=horizon, obs_dim=OBS, act_dim=ACT, n_steps=n_steps)
 
 
-def test_training_learns_a_value_of_the_first_state() -> None:
-    """One-step episodes whose reward is a known function of the state: the value of a window is that function
-    of its (inpainted, hence always visible) first state, at every noise level."""
-    rng = np.random.default_rng(0)
-    n = 512
-    obs = rng.uniform(-1, 1, size=(n, OBS)).astype(np.float32)
+def _first_state_value_data(seed: int, n: int = 512) -> Trajectories:
+    """One-step episodes whose reward (hence value) is ``2 s0 - s1`` of their uniformly drawn state."""
+    obs = np.random.default_rng(seed).uniform(-1, 1, size=(n, OBS)).astype(np.float32)
     traj = make_traj([[0.0]] * n, [False] * n)
     traj.observation = obs
     traj.reward = (2.0 * obs[:, 0] - obs[:, 1]).astype(np.float32)
+    return traj
+
+
+def test_training_learns_a_value_of_the_first_state() -> None:
+    """One-step episodes whose reward is a known function of the state: the value of a window is that function
+    of its (inpainted, hence always visible) first state, at every noise level.
+
+    Both assertions hold with a wide margin on any CPU, not by one machine's rounding. The loss on fixed batches
+    falls 47x in this test on an AMD EPYC (AVX2), 7.7x on an AVX-512 Xeon, and 5.3-47x over init seeds 0-11 and one
+    or two threads there, against the 3x asked; the correlation of the values of held-out states with their true
+    values is 0.995 here and 0.944-0.995 over those seeds and threads, against the 0.8 asked (about 0 untrained)."""
+    traj = _first_state_value_data(0)
     normalizer = GaussianNormalizer.fit(joint_array(traj))
     horizon = 8
     ds = ValueWindowDataset(traj, horizon, normalizer, discount=0.99, terminal_penalty=0.0)
+    held_out = ValueWindowDataset(_first_state_value_data(100), horizon, normalizer, 0.99, terminal_penalty=0.0)
     diffusion = tiny_diffusion(horizon)
     torch.manual_seed(0)
     net = ValueNetwork(OBS + ACT, horizon, dim=16, dim_mults=(1, 2))
@@ -125,15 +135,23 @@ def test_training_learns_a_value_of_the_first_state() -> None:
         with torch.no_grad():
             return value_loss(net, diffusion, x0, target, generator=torch.Generator().manual_seed(5)).item()
 
+    def held_out_correlation() -> float:
+        """Correlation of the values of clean held-out windows (step 0) with their true values."""
+        w, v = held_out.sample(256, np.random.default_rng(2))
+        with torch.no_grad():
+            predicted = net(torch.from_numpy(w), torch.zeros(len(w), dtype=torch.long)).numpy()
+        return float(np.corrcoef(predicted, v)[0, 1])
+
     before = eval_loss()
     logged = []
     settings = ValueSettings(steps=300, batch_size=32, lr=1e-3, seed=0, log_every=50)
     history = train_value(net, diffusion, ds, settings, CPU, progress=False, on_log=lambda s, v: logged.append(s))
     after = eval_loss()
     assert [s for s, _ in history] == logged == list(range(50, settings.steps + 1, 50))
-    assert after < before / 10, (before, after)
+    assert after < before / 3, (before, after)
+    assert held_out_correlation() > 0.8
     assert not net.training
-    # seeded: the same settings from the same initial weights give the same history
+    # seeded: the same settings from the same initial weights give the same history (same process, same machine)
     torch.manual_seed(0)
     again = ValueNetwork(OBS + ACT, horizon, dim=16, dim_mults=(1, 2))
     assert train_value(again, diffusion, ds, settings, CPU, progress=False) == history

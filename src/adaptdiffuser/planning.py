@@ -32,11 +32,14 @@ class Planner:
         #: ``start_goal`` (plans inpaint the start and the goal) or ``start`` (the start only)
         self.conditioning = bundle.config.get("conditioning", "start_goal")
         self.horizon = self.model.horizon
+        #: the network's floating-point type: conditions and noise are made in it (float32 unless a caller
+        #: converted the bundle, e.g. to float64 for tests that must not depend on float32 rounding)
+        self.dtype = next(self.model.parameters()).dtype
 
     def _normalize_states(self, states: np.ndarray) -> torch.Tensor:
         padded = np.concatenate([np.zeros((len(states), self.act_dim)), states], axis=1)
         normed = self.normalizer.normalize(padded)[:, self.act_dim :]
-        return torch.as_tensor(normed, dtype=torch.float32, device=self.device)
+        return torch.as_tensor(normed, dtype=self.dtype, device=self.device)
 
     def guidance(self, objective: Objective, alpha: float) -> Guidance:
         """Guidance by ``objective`` (a function of raw states) with scale ``alpha``, for :meth:`plan`."""
@@ -65,7 +68,7 @@ class Planner:
     ) -> torch.Tensor:
         """Like :meth:`plan`, but the normalized trajectories as a tensor on the planner's device; ``warm_start``
         (normalized trajectories, diffusion step) as in :meth:`Sampler.sample`."""
-        noise = RowNoise(seeds, self.device)
+        noise = RowNoise(seeds, self.device, self.dtype)
         if len(noise) != len(starts):
             raise ValueError(f"{len(starts)} starts but {len(noise)} seeds; give one seed per row")
         conditions = {0: self._normalize_states(starts)}

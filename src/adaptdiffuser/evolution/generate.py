@@ -59,7 +59,7 @@ def generate_plans(
     for rows, coin in tqdm(batches, desc="generate", disable=not progress):
         guidance = None
         if coin:
-            coins = torch.as_tensor(tasks.coins[rows], dtype=torch.float32, device=planner.device)
+            coins = torch.as_tensor(tasks.coins[rows], dtype=planner.dtype, device=planner.device)
             guidance = planner.guidance(CoinObjective(coins), alpha)
         seeds = [derive_seed(seed, i) for i in rows]
         plans[rows] = planner.plan(tasks.starts[rows], tasks.goals[rows], seeds, guidance=guidance)

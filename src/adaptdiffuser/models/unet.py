@@ -9,16 +9,18 @@ from torch import nn
 
 
 class SinusoidalEmbedding(nn.Module):
-    """Sinusoidal embedding of the diffusion step."""
+    """Sinusoidal embedding of the diffusion step, in the module's floating-point type (its frequencies are a
+    buffer, so ``.to(torch.float64)`` converts them with the weights; not saved in state dicts)."""
 
     def __init__(self, dim: int) -> None:
         super().__init__()
         self.dim = dim
+        half = dim // 2
+        freqs = torch.exp(-math.log(10000) * torch.arange(half) / max(half - 1, 1))
+        self.register_buffer("freqs", freqs, persistent=False)
 
     def forward(self, t: torch.Tensor) -> torch.Tensor:
-        half = self.dim // 2
-        freqs = torch.exp(-math.log(10000) * torch.arange(half, device=t.device) / max(half - 1, 1))
-        angles = t.float()[:, None] * freqs[None, :]
+        angles = t.to(self.freqs.dtype)[:, None] * self.freqs[None, :]
         return torch.cat([angles.sin(), angles.cos()], dim=-1)
 
 
