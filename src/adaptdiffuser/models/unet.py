@@ -9,19 +9,19 @@ from torch import nn
 
 
 class SinusoidalEmbedding(nn.Module):
-    """Sinusoidal embedding of the diffusion step, in the module's floating-point type (its frequencies are a
-    buffer, so ``.to(torch.float64)`` converts them with the weights; not saved in state dicts)."""
+    """Sinusoidal embedding of the diffusion step, computed in float32 and returned in the module's floating-point
+    type (an empty buffer follows ``.to(dtype)``; float32 unless a caller converts the network, e.g. to float64)."""
 
     def __init__(self, dim: int) -> None:
         super().__init__()
         self.dim = dim
-        half = dim // 2
-        freqs = torch.exp(-math.log(10000) * torch.arange(half) / max(half - 1, 1))
-        self.register_buffer("freqs", freqs, persistent=False)
+        self.register_buffer("dtype_of", torch.zeros(0), persistent=False)
 
     def forward(self, t: torch.Tensor) -> torch.Tensor:
-        angles = t.to(self.freqs.dtype)[:, None] * self.freqs[None, :]
-        return torch.cat([angles.sin(), angles.cos()], dim=-1)
+        half = self.dim // 2
+        freqs = torch.exp(-math.log(10000) * torch.arange(half, device=t.device) / max(half - 1, 1))
+        angles = t.float()[:, None] * freqs[None, :]
+        return torch.cat([angles.sin(), angles.cos()], dim=-1).to(self.dtype_of.dtype)
 
 
 class Mish(nn.Module):
