@@ -3,8 +3,10 @@ phase 0 (real simulator, real Parquet, real MLflow in a temporary sqlite store).
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,6 @@ from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, load_params
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.diffusion.samplers import DDIMSampler
-from adaptdiffuser.evolution.discriminator import NothingSelectedError
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.common import (
@@ -30,10 +31,13 @@ from adaptdiffuser.stages.common import (
 )
 from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
+from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
 from adaptdiffuser.stages.finetune import finetune_config, run_finetune
 from adaptdiffuser.stages.generate import run_generate
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
+from adaptdiffuser.stages.report import run_report
+from adaptdiffuser.stages.summarize import run_summarize
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = torch.device("cpu")
@@ -111,13 +115,45 @@ def test_finetuned_model_loads_keeps_the_normalizer_and_plans(phase1_root: tuple
     assert finetune_config(params, task, 1, 0).steps == max(1, round(0.25 * task.pretrain.steps))
 
 
-def test_nothing_selected_stops_plainly_and_writes_no_dataset(phase1_root: tuple[Path, Params], tmp_path: Path) -> None:
+def test_a_phase_that_keeps_nothing_is_a_result_and_equals_its_control(
+    phase1_root: tuple[Path, Params], tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A discriminator that keeps nothing does not stop the run: one warning line, an empty selected file, and a
+    phase 1 that trains on expert data only, exactly as its control (gain 0 by construction); evaluation, summary
+    and report go through and say kept 0."""
     root, params = phase1_root
+    copy = tmp_path / "project"
+    shutil.copytree(root, copy)  # every stage below rewrites its outputs there
     strict = _with_phase1(params, max_error=1e-9)
-    before = (root / selected_path(TASK, 1, 0)).read_bytes()
-    with pytest.raises(NothingSelectedError, match="kept none of 16 generated trajectories"):
-        run_discriminate(strict, TASK, root, 1, progress=False)
-    assert (root / selected_path(TASK, 1, 0)).read_bytes() == before  # the earlier output is untouched
+    strict = dataclasses.replace(strict, tasks=(TASK,), collect_tasks=(TASK,), phases=(strict.phase(1),))
+    report = run_discriminate(strict, TASK, copy, 1, progress=False)
+    assert report["kept"] == 0 and report["rejected_tracking"] == report["generated"] == 16
+    warning = [line for line in capfd.readouterr().err.splitlines() if line.startswith("warning:")]
+    assert len(warning) == 1 and "kept none of 16 generated trajectories" in warning[0]
+    selected = read_trajectories(copy / selected_path(TASK, 1, 0), env=TASK)
+    assert len(selected) == 0 and selected.metadata["generator"]["stage"] == "discriminate"
+
+    run_finetune(strict, TASK, copy, 1, CPU, progress=False)
+    run_finetune(strict, TASK, copy, 1, CPU, progress=False, control=True)
+    evolved = load_bundle(copy / model_dir(TASK, 1, 0))
+    control = load_bundle(copy / model_dir(TASK, 1, 0, control=True))
+    assert evolved.config["data"]["synthetic"] == {}
+    pairs = zip(evolved.ema.parameters(), control.ema.parameters(), strict=True)
+    assert all(torch.equal(a, b) for a, b in pairs)  # the same training, on the same data
+
+    run_reference(strict, TASK, copy, progress=False)
+    for k in (0, 1):
+        run_evaluate(strict, TASK, copy, k, CPU, progress=False)
+        run_evaluate_coin(strict, TASK, copy, k, CPU, progress=False)
+    gain = run_evaluate(strict, TASK, copy, 1, CPU, progress=False, control=True)
+    assert gain["gain_mean"] == 0.0
+    summary = run_summarize(strict, copy)[TASK]["phase_1"]
+    assert summary["discriminator"]["kept"] == 0 and summary["gain_mean"] == 0.0
+    assert summary["score_mean"] == summary["control"]["score_mean"]
+    run_report(copy)
+    with (copy / "metrics" / "report" / TASK / "score_by_phase.csv").open() as f:
+        rows = {row["phase"]: row for row in csv.DictReader(f)}
+    assert float(rows["1"]["kept"]) == 0.0 and float(rows["1"]["gain_mean"]) == 0.0
 
 
 def test_control_differs_from_its_phase_only_in_the_data(

@@ -19,7 +19,6 @@ import numpy as np
 from tqdm import tqdm
 
 from adaptdiffuser.config import DiscriminateParams
-from adaptdiffuser.errors import StageError
 
 
 @dataclass
@@ -170,10 +169,6 @@ def generic_selection_rule(cfg: DiscriminateParams) -> SelectionRule:
     if cfg.rule == "top_k":
         return TopKRule(cfg.top_k)
     raise ValueError(f"the selection rule {cfg.rule!r} is not a generic one (quantile, top_k); the family gives it")
-
-
-class NothingSelectedError(StageError):
-    """The discriminator kept no trajectory, so there is nothing to fine-tune on."""
 
 
 @dataclass

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict
+import sys
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import mlflow
 
 from adaptdiffuser.config import Params
-from adaptdiffuser.data.schema import read_trajectories, write_trajectories
-from adaptdiffuser.evolution.discriminator import NothingSelectedError
+from adaptdiffuser.data.schema import Trajectories, read_trajectories, write_trajectories
 from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.plots import save_discriminator_histograms
@@ -38,7 +38,9 @@ def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, se
     """Judge ``data/<task>/phase<k>/generated/seed<s>.parquet``; write the kept executed trajectories to
     ``data/<task>/phase<k>/selected/seed<s>.parquet`` and histograms to ``plots/``; return the report.
 
-    Raises :class:`NothingSelectedError` (and writes no dataset) when nothing is kept."""
+    When nothing is kept that is the phase's result, not an error: one warning line, ``kept`` 0 in the report, and
+    a selected file with no rows (fine-tuning then trains on what earlier phases selected, or, with nothing at
+    all, exactly as the phase's equal-compute control)."""
     task = params.resolve(task_name)
     cfg = params.phase(phase).discriminate
     source = root / generated_path(task.name, phase, seed)
@@ -66,14 +68,6 @@ def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, se
             f"phase {phase}, seed {seed}: {report['kept']} of {report['generated']} kept",
         )
         mlflow.log_artifact(str(picture), artifact_path="discriminator")
-        if not len(judgement.kept):
-            raise NothingSelectedError(
-                f"phase {phase}, training seed {seed}: the discriminator kept none of {report['generated']} "
-                "generated trajectories "
-                f"({report['rejected_tracking']} failed tracking with max_error={cfg.max_error}, "
-                f"{report['rejected_reward']} failed the {cfg.rule!r} rule); not fine-tuning on nothing. "
-                "Loosen evolution.discriminate (max_error, rule: quantile) or generate more tasks."
-            )
         generator = {
             "stage": "discriminate",
             "phase": phase,
@@ -81,6 +75,34 @@ def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, se
             "source": str(generated_path(task.name, phase, seed)),
             **asdict(cfg),
         }
-        selected = family.selected_data(task, generated, judgement, generator)
+        if len(judgement.kept):
+            selected = family.selected_data(task, generated, judgement, generator)
+        else:
+            print(
+                f"warning: {task.name} phase {phase}, training seed {seed}: the discriminator kept none of "
+                f"{report['generated']} generated trajectories ({report['rejected_tracking']} failed tracking with "
+                f"max_error={cfg.max_error}, {report['rejected_reward']} failed the {cfg.rule!r} rule); the phase "
+                "fine-tunes on earlier phases' selections only (none: it is its equal-compute control)",
+                file=sys.stderr,
+                flush=True,
+            )
+            selected = no_rows(generated, generator)
         write_trajectories(root / selected_path(task.name, phase, seed), selected)
     return report
+
+
+def no_rows(generated: Trajectories, generator: dict) -> Trajectories:
+    """An empty selection: ``generated``'s columns with no rows, its metadata naming this stage as generator."""
+    return replace(
+        generated,
+        episode_id=generated.episode_id[:0],
+        step=generated.step[:0],
+        observation=generated.observation[:0],
+        action=generated.action[:0],
+        reward=generated.reward[:0],
+        terminal=generated.terminal[:0],
+        timeout=generated.timeout[:0],
+        metadata={**generated.metadata, "generator": generator},
+        extra={name: values[:0] for name, values in generated.extra.items()},
+        sim_state=None if generated.sim_state is None else generated.sim_state[:0],
+    )

@@ -79,9 +79,13 @@ def finetune_seed(
     parts = [WindowDataset(expert, task.diffusion.horizon, bundle.normalizer)]
     for j in [] if control else params.lineage(phase):
         path = root / selected_path(task.name, j, seed)
-        parts.append(WindowDataset(read_trajectories(path, env=task.name), task.diffusion.horizon, bundle.normalizer))
+        selected = read_trajectories(path, env=task.name)
+        if len(selected) == 0:  # that phase's discriminator kept nothing: no synthetic windows from it
+            continue
+        parts.append(WindowDataset(selected, task.diffusion.horizon, bundle.normalizer))
         synthetic_info[f"phase{j}"] = {"path": str(selected_path(task.name, j, seed)), "sha256": file_digest(path)}
-    w = 1.0 if control else cfg.finetune.expert_weight
+    # with no synthetic data at all, the phase trains exactly as its control does
+    w = 1.0 if len(parts) == 1 else cfg.finetune.expert_weight
     synthetic_share = (1.0 - w) / max(1, len(parts) - 1)
     dataset = MixedWindowDataset(parts, [w] + [synthetic_share] * (len(parts) - 1))
     train_cfg = finetune_config(params, task, phase, seed)
