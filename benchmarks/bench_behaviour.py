@@ -38,6 +38,7 @@ def main() -> None:
         settings = BehaviourSettings(
             algorithm=algo, seed=args.seed, medium_score=args.medium_score, max_train_steps=budgets[algo],
             max_expert_steps=budgets[algo], eval_every=DEFAULT_EVAL_EVERY[algo], torch_threads=args.threads,
+            medium_band=None,  # time to the first evaluation at the target (bench_behaviour_band.py: the band)
         )  # fmt: skip
         start, cpu_start, load_start = time.perf_counter(), time.process_time(), os.getloadavg()[0]
         with tempfile.TemporaryDirectory() as tmp:

@@ -2,4 +2,4 @@
 
 
 class StageError(ValueError):
-    """A stage cannot go on with its inputs (for example, nothing passed the discriminator); says why."""
+    """A stage cannot go on with its inputs (for example, no behaviour policy scored inside its band); says why."""

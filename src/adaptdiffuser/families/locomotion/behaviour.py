@@ -12,6 +12,7 @@ Every row records the full simulator state (qpos, qvel) before the step. Everyth
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import time
@@ -26,10 +27,12 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.families.locomotion.band import Band, search_band
 from adaptdiffuser.families.locomotion.params import BehaviourSettings
 from adaptdiffuser.families.locomotion.reference import normalized_score
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator, env_id_of, parse_task_name
 from adaptdiffuser.io import atomic_path, write_json
+from adaptdiffuser.seeding import derive_seed
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
@@ -57,18 +60,29 @@ def random_policy(sim: LocomotionSimulator, seed: int) -> Policy:
 
 
 def evaluate_policy_returns(
-    policy: Policy | Any, task: str | LocomotionSimulator, episodes: int, seed: int, episode_steps: int | None = None
+    policy: Policy | Any,
+    task: str | LocomotionSimulator,
+    episodes: int,
+    seed: int,
+    episode_steps: int | None = None,
+    noise: float = 0.0,
 ) -> np.ndarray:
     """Undiscounted returns of ``policy`` (a function or an SB3 model, deterministic) over ``episodes`` episodes;
-    episode ``i`` starts from ``np.random.default_rng([seed, i])``, so the same seed gives the same starts."""
+    episode ``i`` starts from ``np.random.default_rng([seed, i])``, so the same seed gives the same starts. With
+    ``noise``, actions get Gaussian noise of ``noise`` times the action half-range, as datasets are recorded."""
     sim = task if isinstance(task, LocomotionSimulator) else LocomotionSimulator(env_id_of(task))
     act = sb3_policy(policy) if hasattr(policy, "predict") else policy
     horizon = episode_steps or sim.episode_steps
+    half_range = (sim.action_high - sim.action_low) / 2
     returns = np.zeros(episodes)
     for i in range(episodes):
         obs = sim.reset(np.random.default_rng([seed, i]))
+        noise_rng = np.random.default_rng([seed, i, 1])
         for _ in range(horizon):
-            out = sim.step(act(obs))
+            action = np.asarray(act(obs), dtype=np.float64)
+            if noise > 0:
+                action = sim.clip_action(action + noise * half_range * noise_rng.standard_normal(sim.act_dim))
+            out = sim.step(action)
             returns[i] += out.reward
             obs = out.observation
             if out.terminated:
@@ -103,6 +117,15 @@ class _Recorder:
 
     def __len__(self) -> int:
         return len(self.episode)
+
+    def truncate(self, rows: int) -> None:
+        """Keep the first ``rows`` rows (training went back to that point); an episode cut there ends with a
+        timeout."""
+        for column in (self.observation, self.action, self.reward, self.terminal, self.timeout, self.state,
+                       self.episode):  # fmt: skip
+            del column[rows:]
+        if rows and not (self.terminal[-1] or self.timeout[-1]):
+            self.timeout[-1] = True
 
     def columns(self, rows: int | None = None) -> dict[str, np.ndarray]:
         """The first ``rows`` rows as arrays; an episode cut by the end of the rows ends with a timeout."""
@@ -286,11 +309,33 @@ def train_behaviour(
                 "wall_s": time.perf_counter() - start}  # fmt: skip
         return info, save(learner, name)
 
+    def medium_in_band(learner: Any, start: float) -> tuple[Any, dict[str, Any], Any]:
+        band = Band(settings.medium_score, settings.medium_band)
+        trainee = _Learner(learner, train_env, recorder, eval_sim, settings, _Bar)
+
+        def on_eval(record: dict[str, Any]) -> None:
+            score = record.get("band_score", record["quick_score"])
+            curve.append({**record, "normalized_score": score, "wall_s": time.perf_counter() - start})
+            bar.set_postfix(score=f"{score:.1f}")
+            write_json(out_dir / SUMMARY_FILE, summary)
+
+        choice = search_band(trainee, band, settings.eval_every, settings.min_eval_every, settings.max_train_steps,
+                             on_eval, setting="behaviour")  # fmt: skip
+        info = {"file": "medium.zip", "target": settings.medium_score, "band": [band.low, band.high],
+                "reached": True, "steps": choice.steps, "normalized_score": choice.score,
+                "score_episodes": settings.band_episodes, "score_noise": settings.rollout_noise,
+                "spent_steps": choice.spent, "rewinds": choice.rewinds,
+                "wall_s": time.perf_counter() - start}  # fmt: skip
+        return trainee.learner, info, save(trainee.learner, "medium")
+
     with _torch_threads(settings.torch_threads):
         train_env = _SimEnv(sim, recorder)
         learner = make_learner(train_env, settings)
         start = time.perf_counter()
-        medium, medium_policy = phase(learner, settings.medium_score, settings.max_train_steps, "medium", start)
+        if settings.medium_band is None:
+            medium, medium_policy = phase(learner, settings.medium_score, settings.max_train_steps, "medium", start)
+        else:
+            learner, medium, medium_policy = medium_in_band(learner, start)
         summary["medium"] = medium
         replay = recorder.columns(len(recorder))
         result = TrainingResult(learner, curve, replay, medium, medium_policy=medium_policy)
@@ -304,6 +349,49 @@ def train_behaviour(
     bar.close()
     write_json(out_dir / SUMMARY_FILE, summary)
     return result
+
+
+class _Learner:
+    """An SB3 learner as the band search's :class:`~adaptdiffuser.families.locomotion.band.Trainee`: snapshots are
+    the saved learner (policy, optimizer, step count) with the replay recorder's length; going back reloads it,
+    cuts the recorder there and reseeds (an off-policy learner restarts its replay buffer)."""
+
+    def __init__(self, learner: Any, env: _SimEnv, recorder: _Recorder, eval_sim: LocomotionSimulator,
+                 settings: BehaviourSettings, callback: type) -> None:  # fmt: skip
+        self.learner, self.env, self.recorder = learner, env, recorder
+        self.eval_sim, self.settings, self.callback = eval_sim, settings, callback
+
+    def train(self, steps: int) -> int:
+        before = self.learner.num_timesteps
+        self.learner.learn(steps, reset_num_timesteps=False, callback=self.callback())
+        return int(self.learner.num_timesteps - before)
+
+    def steps(self) -> int:
+        return int(self.learner.num_timesteps)
+
+    def _score(self, episodes: int, seed: int) -> float:
+        """The mean normalized score as the data will be recorded: deterministic action plus rollout noise."""
+        returns = evaluate_policy_returns(
+            self.learner, self.eval_sim, episodes, seed, noise=self.settings.rollout_noise
+        )
+        return float(normalized_score(returns.mean(), self.eval_sim.name))
+
+    def quick_score(self) -> float:
+        return self._score(self.settings.eval_episodes, self.settings.eval_seed)
+
+    def band_score(self) -> float:
+        return self._score(self.settings.band_episodes, self.settings.eval_seed + 1)
+
+    def snapshot(self) -> tuple[bytes, int]:
+        buffer = io.BytesIO()
+        self.learner.save(buffer)
+        return buffer.getvalue(), len(self.recorder)
+
+    def restore(self, snapshot: tuple[bytes, int], attempt: int) -> None:
+        saved, rows = snapshot
+        self.learner = _algorithm_class(self.settings.algorithm).load(io.BytesIO(saved), env=self.env, device="cpu")
+        self.learner.set_random_seed(derive_seed(self.settings.seed, attempt))
+        self.recorder.truncate(rows)
 
 
 # -- datasets -------------------------------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -63,6 +64,8 @@ class LocomotionFamily(Family):
         policies = {"random": random_policy(sim, ev.seed)}
         if (files.collect / SUMMARY_FILE).exists():
             policies["behaviour"] = load_behaviour_policy(files.collect)
+            medium = json.loads((files.collect / SUMMARY_FILE).read_text())["medium"]
+            ref["behaviour_chosen"] = {key: medium.get(key) for key in ("band", "steps", "normalized_score", "rewinds")}
         else:  # imported data (the import stage): no behaviour policy was trained
             ref["behaviour"] = "none: the task's data was imported, so there is no behaviour policy to score"
         for who, policy in policies.items():

@@ -56,6 +56,14 @@ class BehaviourSettings(BaseModel):
     seed: int = Field(0, ge=0)
     #: normalized score at which training stops and the ``medium`` policy is saved
     medium_score: FiniteFloat = 33.0
+    #: half-width of the band the ``medium`` policy's score must lie in: ``medium_score +- medium_band``, measured
+    #: as the dataset is recorded (with ``rollout_noise``) on ``band_episodes`` episodes; training that jumps over
+    #: the band goes back to its last checkpoint below it and evaluates more often. ``None``: no band (stop at the
+    #: first evaluation at or above ``medium_score``, or at the budget's end; for tiny test budgets only)
+    medium_band: FiniteFloat | None = Field(3.0, gt=0.0)
+    band_episodes: int = Field(20, gt=0)
+    #: the shortest interval between evaluations when going back (rounded up to whole PPO rollouts)
+    min_eval_every: int = Field(2_048, gt=0)
     #: normalized score the ``expert`` policy (``medium-expert`` only) trains on to
     expert_score: FiniteFloat = 90.0
     #: environment steps budget to reach ``medium_score`` (the policy there is saved, reached or not)

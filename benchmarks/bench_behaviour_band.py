@@ -1,0 +1,79 @@
+"""Behaviour data of a stated quality whatever path PPO takes: the collect recipe under variations that change PPO's
+path as another CPU's rounding would (another seed, another torch thread count), per locomotion task.
+
+For each task and variation: train the behaviour policy with the band search (``medium_score +- medium_band``),
+record the ``medium`` dataset, and print the chosen checkpoint, its confirmed score, the dataset's mean normalized
+score over its episodes (as the reference stage reports it), how often training went back, and the time (printed,
+never asserted). Writes every figure as JSON.
+
+    python benchmarks/bench_behaviour_band.py [--tasks hopper-medium walker2d-medium halfcheetah-medium]
+        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 300000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from adaptdiffuser.errors import StageError
+from adaptdiffuser.families.locomotion.behaviour import collect_locomotion_dataset
+from adaptdiffuser.families.locomotion.family import episode_returns
+from adaptdiffuser.families.locomotion.params import BehaviourSettings
+from adaptdiffuser.families.locomotion.reference import normalized_score
+from adaptdiffuser.families.locomotion.simulator import env_id_of
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tasks", nargs="+", default=["hopper-medium", "walker2d-medium", "halfcheetah-medium"])
+    parser.add_argument("--variations", nargs="+", default=["0:2", "0:1", "1:2"], help="seed:threads")
+    parser.add_argument("--dataset-steps", type=int, default=200_000)
+    parser.add_argument("--max-train-steps", type=int, default=300_000)
+    parser.add_argument("--out", default="bench_behaviour_band.json")
+    args = parser.parse_args()
+    results: list[dict] = []
+    for task in args.tasks:
+        for variation in args.variations:
+            seed, threads = (int(x) for x in variation.split(":"))
+            settings = BehaviourSettings(seed=seed, torch_threads=threads, dataset_steps=args.dataset_steps,
+                                         max_train_steps=args.max_train_steps)  # fmt: skip
+            row: dict = {"task": task, "seed": seed, "threads": threads, "band": [settings.medium_score -
+                         settings.medium_band, settings.medium_score + settings.medium_band]}  # fmt: skip
+            start = time.perf_counter()
+            with tempfile.TemporaryDirectory() as tmp:
+                try:
+                    traj = collect_locomotion_dataset(task, Path(tmp), settings)
+                except StageError as err:
+                    row |= {"error": str(err), "wall_s": time.perf_counter() - start}
+                    print(f"{task} seed {seed} threads {threads}: {err}", flush=True)
+                    results.append(row)
+                    Path(args.out).write_text(json.dumps(results, indent=2) + "\n")
+                    continue
+                summary = json.loads((Path(tmp) / "behaviour.json").read_text())
+            scores = normalized_score(episode_returns(traj), env_id_of(task))  # as the reference stage scores it
+            medium = summary["medium"]
+            row |= {"chosen_steps": medium["steps"], "policy_score": medium["normalized_score"],
+                    "rewinds": medium["rewinds"], "spent_steps": medium["spent_steps"],
+                    "dataset_score": float(scores.mean()), "dataset_episodes": int(len(scores)),
+                    "dataset_stderr": float(scores.std(ddof=1) / np.sqrt(len(scores))) if len(scores) > 1 else 0.0,
+                    "wall_s": time.perf_counter() - start, "curve": summary["curve"]}  # fmt: skip
+            inside = row["band"][0] <= row["dataset_score"] <= row["band"][1]
+            print(
+                f"{task} seed {seed} threads {threads}: policy {medium['normalized_score']:.1f} at "
+                f"{medium['steps']} steps ({medium['rewinds']} rewinds, {medium['spent_steps']} spent); dataset "
+                f"{row['dataset_score']:.1f} +- {row['dataset_stderr']:.1f} over {len(scores)} episodes "
+                f"({'inside' if inside else 'OUTSIDE'} {row['band'][0]:g}..{row['band'][1]:g}); "
+                f"{row['wall_s']:.0f} s",
+                flush=True,
+            )
+            results.append(row)
+            Path(args.out).write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

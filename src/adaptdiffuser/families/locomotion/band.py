@@ -1,0 +1,118 @@
+"""Choosing the ``medium`` behaviour policy inside a score band, whatever path training takes on this CPU.
+
+Float rounding differs between CPUs, so the same seeded learner follows another path on another machine, and one
+evaluation every ``eval_every`` steps can jump over a narrow score range (30.8 -> 65.4 seen on Hopper). The search
+trains in chunks and evaluates after each; a score near the band is measured again on more episodes, as the data
+will be recorded; a score above the band sends training back to its last checkpoint below it, with a shorter
+interval and a fresh seed. It ends at the first confirmed score inside the band, or refuses when the step budget
+runs out. The rule is written against :class:`Trainee`, so it runs the same on a real learner and on a score curve.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from adaptdiffuser.errors import StageError
+
+
+@dataclass(frozen=True)
+class Band:
+    """Normalized scores ``target +- half_width``."""
+
+    target: float
+    half_width: float
+
+    @property
+    def low(self) -> float:
+        return self.target - self.half_width
+
+    @property
+    def high(self) -> float:
+        return self.target + self.half_width
+
+    def __contains__(self, score: float) -> bool:
+        return self.low <= score <= self.high
+
+    def near(self, score: float) -> bool:
+        """Within one more half-width of the band: worth measuring on more episodes."""
+        return self.low - self.half_width <= score <= self.high + self.half_width
+
+
+class Trainee(Protocol):
+    """What the search needs of a learner."""
+
+    def train(self, steps: int) -> int:
+        """Train about ``steps`` more environment steps; return how many were taken."""
+
+    def steps(self) -> int:
+        """Environment steps of the current policy's training path."""
+
+    def quick_score(self) -> float:
+        """A cheap estimate of the current policy's normalized score."""
+
+    def band_score(self) -> float:
+        """The current policy's normalized score as the data will be recorded, on enough episodes to be sure."""
+
+    def snapshot(self) -> Any:
+        """The current state, for :meth:`restore`."""
+
+    def restore(self, snapshot: Any, attempt: int) -> None:
+        """Go back to ``snapshot``; ``attempt`` (1, 2, ...) seeds the path taken from there."""
+
+
+class BandNotReachedError(StageError):
+    """No policy scored inside the band within the step budget."""
+
+
+@dataclass(frozen=True)
+class BandChoice:
+    """The chosen policy: its training steps, confirmed score, steps spent in all (discarded paths included) and
+    how many times training went back."""
+
+    steps: int
+    score: float
+    spent: int
+    rewinds: int
+
+
+def search_band(
+    trainee: Trainee,
+    band: Band,
+    eval_every: int,
+    min_eval_every: int,
+    budget: int,
+    on_eval: Callable[[dict[str, Any]], None] = lambda record: None,
+    setting: str = "behaviour",
+) -> BandChoice:
+    """Train ``trainee`` until a policy's confirmed score lies in ``band`` (see the module's docstring); every
+    evaluation is passed to ``on_eval`` as ``{steps, spent, quick_score, band_score?, action}``. Raises
+    :class:`BandNotReachedError` naming the settings to change when ``budget`` steps are spent first."""
+    spent, rewinds, interval = 0, 0, eval_every
+    below = trainee.snapshot()
+    highest = -float("inf")
+    while spent < budget:
+        spent += trainee.train(min(interval, budget - spent))
+        quick = trainee.quick_score()
+        record: dict[str, Any] = {"steps": trainee.steps(), "spent": spent, "quick_score": quick}
+        score = quick
+        if band.near(quick):
+            score = record["band_score"] = trainee.band_score()
+        highest = max(highest, score)
+        if "band_score" in record and score in band:
+            on_eval(record | {"action": "choose"})
+            return BandChoice(trainee.steps(), score, spent, rewinds)
+        if score < band.low:
+            on_eval(record | {"action": "continue"})
+            below = trainee.snapshot()
+            continue
+        rewinds += 1
+        interval = max(min_eval_every, interval // 4)
+        on_eval(record | {"action": "rewind", "next_interval": interval})
+        trainee.restore(below, rewinds)
+    raise BandNotReachedError(
+        f"{setting}: no behaviour policy scored inside {band.low:g}..{band.high:g} within {budget} training steps "
+        f"(highest {highest:.1f}, went back {rewinds} times); raise {setting}.max_train_steps, widen "
+        f"{setting}.medium_band or lower {setting}.min_eval_every"
+    )

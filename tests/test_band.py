@@ -1,0 +1,116 @@
+"""The medium policy's band search, on score curves (the rule) and on a real PPO learner (the wiring)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from adaptdiffuser.families.locomotion.band import Band, BandNotReachedError, search_band
+from adaptdiffuser.families.locomotion.behaviour import _Recorder, train_behaviour
+from adaptdiffuser.families.locomotion.params import BehaviourSettings
+
+BAND = Band(33.0, 3.0)
+
+
+class CurveTrainee:
+    """A learner whose score is ``curve(steps)``; going back returns to the snapshot's steps."""
+
+    def __init__(self, curve: Callable[[int], float]) -> None:
+        self.curve, self.at, self.band_measured = curve, 0, 0
+
+    def train(self, steps: int) -> int:
+        self.at += steps
+        return steps
+
+    def steps(self) -> int:
+        return self.at
+
+    def quick_score(self) -> float:
+        return self.curve(self.at)
+
+    def band_score(self) -> float:
+        self.band_measured += 1
+        return self.curve(self.at)
+
+    def snapshot(self) -> int:
+        return self.at
+
+    def restore(self, snapshot: int, attempt: int) -> None:
+        self.at = snapshot
+
+
+def jumping_curve(steps: int) -> float:
+    """Rises slowly to 28 at 81 920 steps, then 37.4 points in 20 480 steps (to 65.4): evaluations every 20 480
+    steps see 28 then 65.4, never the band 30..36 crossed between them."""
+    if steps <= 81_920:
+        return 28.0 * steps / 81_920
+    return 28.0 + 37.4 * (steps - 81_920) / 20_480
+
+
+def test_a_curve_that_jumps_over_the_band_is_searched_back_into_it() -> None:
+    trainee, records = CurveTrainee(jumping_curve), []
+    choice = search_band(trainee, BAND, 20_480, 2_048, 300_000, records.append)
+    # "first evaluation at or above the target" would take 65.4 at 102 400 steps
+    assert choice.score in BAND and 81_920 < choice.steps < 102_400
+    assert choice.score == pytest.approx(jumping_curve(choice.steps))
+    assert choice.rewinds == 2 and [r["action"] for r in records][-4:] == ["continue", "rewind", "rewind", "choose"]
+    assert records[4] == {"steps": 102_400, "spent": 102_400, "quick_score": 65.4, "action": "rewind",
+                          "next_interval": 5_120}  # fmt: skip
+    assert choice.spent == sum(r["steps"] - p for r, p in zip(records, [0, *[20_480 * i for i in range(1, 5)],
+                                                                          81_920, 81_920], strict=True))  # fmt: skip
+    assert all("band_score" in r for r in records if r["action"] == "choose")
+
+
+def test_a_curve_that_never_reaches_the_band_is_refused_naming_the_settings() -> None:
+    trainee = CurveTrainee(lambda steps: min(20.0, steps / 1_000))
+    with pytest.raises(BandNotReachedError, match=r"30\.\.36 within 100000 .*highest 20\.0.*max_train_steps"):
+        search_band(trainee, BAND, 10_000, 2_048, 100_000, setting="task.hopper-medium.behaviour")
+    assert trainee.at == 100_000
+
+
+def test_a_score_is_confirmed_before_it_is_chosen() -> None:
+    """A cheap score inside the band whose confirmation is below it does not end the search."""
+    trainee = CurveTrainee(lambda steps: 31.0 + steps / 10_000)
+    trainee.band_score = lambda: trainee.curve(trainee.at) - 3.0  # type: ignore[method-assign]
+    choice = search_band(trainee, BAND, 10_000, 2_048, 100_000)
+    assert choice.steps == 20_000 and choice.score == pytest.approx(30.0)  # at 10 000: 32 quick, 29 confirmed
+
+
+def test_recorder_truncation_ends_the_cut_episode_with_a_timeout() -> None:
+    recorder = _Recorder()
+    for _ in range(5):
+        recorder.add(0, np.zeros(2), np.zeros(3), np.zeros(1), 1.0, False, False)
+    recorder.add(1, np.zeros(2), np.zeros(3), np.zeros(1), 1.0, False, False)
+    recorder.truncate(3)
+    cols = recorder.columns()
+    assert len(recorder) == 3 and cols["timeout"].tolist() == [False, False, True]
+
+
+TINY = {"max_train_steps": 600, "eval_every": 150, "min_eval_every": 150, "eval_episodes": 1, "band_episodes": 2,
+        "episode_steps": 60, "net_arch": [32, 32], "torch_threads": 1, "ppo_n_steps": 150,
+        "batch_size": 50}  # fmt: skip
+
+
+def test_a_real_learner_goes_back_and_is_refused_when_every_score_is_above_the_band(tmp_path: Path) -> None:
+    """PPO on Hopper with a band below anything it scores: every evaluation sends it back to its start (reloaded
+    learner, reseeded, replay cut), until the budget is spent; the curve shows each try."""
+    settings = BehaviourSettings(seed=0, medium_score=-500.0, medium_band=1.0, **TINY)
+    with pytest.raises(BandNotReachedError, match="within 600 training steps .*went back 4 times"):
+        train_behaviour("Hopper-v5", tmp_path, settings)
+    curve = json.loads((tmp_path / "behaviour.json").read_text())["curve"]
+    assert [p["action"] for p in curve] == ["rewind"] * 4
+    assert [p["steps"] for p in curve] == [150] * 4 and [p["spent"] for p in curve] == [150, 300, 450, 600]
+
+
+def test_a_real_learner_is_chosen_inside_the_band_with_its_replay(tmp_path: Path) -> None:
+    settings = BehaviourSettings(seed=0, medium_score=0.0, medium_band=100.0, **TINY)
+    result = train_behaviour("Hopper-v5", tmp_path, settings)
+    summary = json.loads((tmp_path / "behaviour.json").read_text())
+    medium = summary["medium"]
+    assert medium["band"] == [-100.0, 100.0] and medium["steps"] == 150 and medium["rewinds"] == 0
+    assert medium["score_episodes"] == 2 and medium["normalized_score"] == summary["curve"][-1]["band_score"]
+    assert len(result.replay["episode"]) == 150 and (tmp_path / "medium.zip").exists()
