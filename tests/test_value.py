@@ -15,7 +15,8 @@ from adaptdiffuser.data.windows import joint_array
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.models.unet import TemporalUnet
 from adaptdiffuser.models.value import ValueNetwork
-from adaptdiffuser.value_training import load_value, save_value, train_value, value_loss
+from adaptdiffuser.stages.value import split_heldout
+from adaptdiffuser.value_training import heldout_r2, load_value, save_value, train_value, value_loss
 
 CPU = torch.device("cpu")
 OBS, ACT = 3, 2
@@ -150,11 +151,33 @@ def test_training_learns_a_value_of_the_first_state() -> None:
     assert [s for s, _ in history] == logged == list(range(50, settings.steps + 1, 50))
     assert after < before / 3, (before, after)
     assert held_out_correlation() > 0.8
+    # the stage's held-out R^2 (0.975 noised, 0.981 clean here): high for the trained network, not for a new one
+    fit = heldout_r2(net, diffusion, held_out, 512, seed=3, device=CPU)
+    assert fit["r2"] > 0.6 and fit["r2_t0"] > 0.6 and fit["windows"] == 512
+    torch.manual_seed(0)
+    untrained = heldout_r2(ValueNetwork(OBS + ACT, horizon, dim=16, dim_mults=(1, 2)), diffusion, held_out, 512, 3, CPU)
+    assert untrained["r2"] < 0.2 and untrained["r2_t0"] < 0.2
     assert not net.training
     # seeded: the same settings from the same initial weights give the same history (same process, same machine)
     torch.manual_seed(0)
     again = ValueNetwork(OBS + ACT, horizon, dim=16, dim_mults=(1, 2))
     assert train_value(again, diffusion, ds, settings, CPU, progress=False) == history
+
+
+def test_heldout_split_is_seeded_disjoint_and_keeps_episodes_whole() -> None:
+    traj = make_traj([[float(i)] * (i + 1) for i in range(10)], [True] * 10)
+    train, held = split_heldout(traj, 0.3, seed=4)
+    assert held is not None and len(held.episodes()) == 3 and len(train.episodes()) == 7
+    assert set(np.unique(train.episode_id)) | set(np.unique(held.episode_id)) == set(range(10))
+    assert not set(np.unique(train.episode_id)) & set(np.unique(held.episode_id))
+    for part in (train, held):  # every episode whole: its length is its id + 1, as made
+        assert all(sl.stop - sl.start == part.episode_id[sl.start] + 1 for sl in part.episodes())
+    again, held_again = split_heldout(traj, 0.3, seed=4)
+    assert np.array_equal(held_again.episode_id, held.episode_id)
+    assert split_heldout(traj, 0.0, seed=4) == (traj, None)
+    one = make_traj([[1.0, 2.0]], [True])
+    assert split_heldout(one, 0.5, seed=4) == (one, None)  # a single episode is trained on
+    assert len(split_heldout(traj, 0.01, seed=4)[1].episodes()) == 1  # at least one held out
 
 
 def test_value_settings_validation() -> None:

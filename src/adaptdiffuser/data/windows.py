@@ -81,7 +81,13 @@ def subset_episodes(traj: Trajectories, fraction: float, rng: np.random.Generato
     if fraction == 1.0:
         return traj
     chosen = np.sort(rng.choice(len(episodes), size=max(1, round(fraction * len(episodes))), replace=False))
-    rows = np.concatenate([np.arange(episodes[i].start, episodes[i].stop) for i in chosen])
+    return take_episodes(traj, chosen)
+
+
+def take_episodes(traj: Trajectories, indices: np.ndarray | list[int]) -> Trajectories:
+    """The episodes of ``traj`` at positions ``indices`` (in :meth:`Trajectories.episodes` order), in that order."""
+    episodes = traj.episodes()
+    rows = np.concatenate([np.arange(episodes[i].start, episodes[i].stop) for i in indices]).astype(np.int64)
     return Trajectories(
         episode_id=traj.episode_id[rows],
         step=traj.step[rows],

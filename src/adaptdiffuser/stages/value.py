@@ -6,30 +6,50 @@ from __future__ import annotations
 from pathlib import Path
 
 import mlflow
+import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params
 from adaptdiffuser.data.returns import ValueWindowDataset
+from adaptdiffuser.data.schema import Trajectories
+from adaptdiffuser.data.windows import take_episodes
 from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.plots import save_loss_curve
-from adaptdiffuser.seeding import training_seed
+from adaptdiffuser.seeding import derive_seed, training_seed
 from adaptdiffuser.stages.common import model_dir, value_dir
 from adaptdiffuser.stages.pretrain import expert_training_data
 from adaptdiffuser.tracking import stage_run
-from adaptdiffuser.value_training import save_value, train_value
+from adaptdiffuser.value_training import heldout_r2, save_value, train_value
+
+#: windows of the held-out episodes the value's R^2 is measured on
+HELDOUT_WINDOWS = 4096
+
+
+def split_heldout(traj: Trajectories, fraction: float, seed: int) -> tuple[Trajectories, Trajectories | None]:
+    """The episodes to train the value on and the held-out ones (``round(fraction * n)`` of ``n``, at least one,
+    drawn with ``seed``; at least one is trained on). ``fraction`` 0 or a single episode: nothing held out."""
+    n = len(traj.episodes())
+    k = min(n - 1, max(1, round(fraction * n))) if fraction > 0 else 0
+    if k <= 0:
+        return traj, None
+    held = np.sort(np.random.default_rng(seed).choice(n, size=k, replace=False))
+    return take_episodes(traj, np.setdiff1d(np.arange(n), held)), take_episodes(traj, held)
 
 
 def run_value(
     params: Params, task_name: str, root: Path, device: torch.device, seed: int, progress: bool = True
 ) -> Path:
     """Regress the discounted return-to-go of training seed ``seed``'s phase-0 training windows, noised with its
-    diffusion schedule and scaled by its normalizer; write ``models/<task>/phase0/seed<s>/value``."""
+    diffusion schedule and scaled by its normalizer, less the held-out episodes (``value.holdout_fraction``) on
+    which its R^2 is measured (MLflow ``value_heldout_r2``, ``value_heldout_r2_t0``; ``heldout`` in the value's
+    ``config.json``); write ``models/<task>/phase0/seed<s>/value``."""
     task = params.resolve(task_name)
     net_settings = task.settings.value_model
     settings = task.settings.value.model_copy(update={"seed": training_seed(task.settings.value.seed, seed)})
     bundle = load_bundle(root / model_dir(task.name, 0, seed), "cpu")
     traj, data = expert_training_data(task, root, seed)
+    traj, heldout = split_heldout(traj, settings.holdout_fraction, derive_seed(settings.seed, 1))
     logged = {
         "value": settings.model_dump(),
         "value_model": net_settings.model_dump(),
@@ -58,8 +78,17 @@ def run_value(
             progress=progress,
             on_log=lambda step, loss: mlflow.log_metric("value_loss", loss, step=step),
         )
+        fit = {"episodes": len(traj.episodes()), "heldout_episodes": 0}
+        if heldout is not None:
+            held = ValueWindowDataset(
+                heldout, task.diffusion.horizon, bundle.normalizer, settings.discount, settings.terminal_penalty
+            )
+            fit |= heldout_r2(net, bundle.diffusion, held, HELDOUT_WINDOWS, derive_seed(settings.seed, 2), device)
+            fit["heldout_episodes"] = len(heldout.episodes())
+            mlflow.log_metrics({"value_heldout_r2": fit["r2"], "value_heldout_r2_t0": fit["r2_t0"]})
         out = root / value_dir(task.name, seed)
-        save_value(out, net.cpu(), {"settings": settings.model_dump(), "task": task.name, "data": data})
+        info = {"settings": settings.model_dump(), "task": task.name, "data": data, "heldout": fit}
+        save_value(out, net.cpu(), info)
         curve = out / "value_loss.png"  # written after the atomic folder exists
         save_loss_curve(history, curve)
         mlflow.log_artifacts(str(out), artifact_path="value")
