@@ -7,7 +7,7 @@ score over its episodes (as the reference stage reports it), how often training 
 never asserted). Writes every figure as JSON.
 
     python benchmarks/bench_behaviour_band.py [--tasks hopper-medium walker2d-medium halfcheetah-medium]
-        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 300000]
+        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 600000]
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def main() -> None:
     parser.add_argument("--tasks", nargs="+", default=["hopper-medium", "walker2d-medium", "halfcheetah-medium"])
     parser.add_argument("--variations", nargs="+", default=["0:2", "0:1", "1:2"], help="seed:threads")
     parser.add_argument("--dataset-steps", type=int, default=200_000)
-    parser.add_argument("--max-train-steps", type=int, default=300_000)
+    parser.add_argument("--max-train-steps", type=int, default=600_000)
     parser.add_argument("--out", default="bench_behaviour_band.json")
     args = parser.parse_args()
     results: list[dict] = []

@@ -153,7 +153,9 @@ def test_short_training_reduces_loss() -> None:
         loss.backward()
         opt.step()
     after = eval_loss()
-    assert after < before / 3, (before, after)
+    # 4.0x here (AMD EPYC, AVX2), 3.7-4.4x over the network's init seeds 0-5 (the loss settles near 0.066 each
+    # time); a CPU's rounding moves it far less than a new init does, and a step that learns nothing gives about 1x
+    assert after < before / 2, (before, after)
 
 
 class Recorder(GuidanceBase):

@@ -262,10 +262,17 @@ class TrainingResult:
 
 
 def train_behaviour(
-    env_id: str, out_dir: Path, settings: BehaviourSettings, expert: bool = False, progress: bool = False
+    env_id: str,
+    out_dir: Path,
+    settings: BehaviourSettings,
+    expert: bool = False,
+    progress: bool = False,
+    setting: str = "behaviour",
 ) -> TrainingResult:
-    """Train until the medium score (or the step budget), save ``medium.zip``; with ``expert``, go on to the expert
-    score (or its budget) and save ``expert.zip``. ``behaviour.json`` in ``out_dir`` holds the evaluation curve."""
+    """Train until the medium score's band (see :mod:`~adaptdiffuser.families.locomotion.band`; without a band,
+    the first evaluation at the medium score or the step budget's end), save ``medium.zip``; with ``expert``, go on
+    to the expert score (or its budget) and save ``expert.zip``. ``behaviour.json`` in ``out_dir`` holds the
+    evaluation curve. ``setting`` is the params key that errors name (``task.<name>.behaviour``)."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     out_dir = Path(out_dir)
@@ -320,7 +327,7 @@ def train_behaviour(
             write_json(out_dir / SUMMARY_FILE, summary)
 
         choice = search_band(trainee, band, settings.eval_every, settings.min_eval_every, settings.max_train_steps,
-                             on_eval, setting="behaviour")  # fmt: skip
+                             on_eval, setting=setting)  # fmt: skip
         info = {"file": "medium.zip", "target": settings.medium_score, "band": [band.low, band.high],
                 "reached": True, "steps": choice.steps, "normalized_score": choice.score,
                 "score_episodes": settings.band_episodes, "score_noise": settings.rollout_noise,
@@ -432,7 +439,8 @@ def collect_locomotion_dataset(
     """Train the behaviour policies of ``task_name`` (saved in ``out_dir``) and record its D4RL-style dataset."""
     env_id, kind = parse_task_name(task_name)
     sim = LocomotionSimulator(env_id, episode_steps=settings.episode_steps)
-    result = train_behaviour(env_id, out_dir, settings, expert=kind == "medium-expert", progress=progress)
+    result = train_behaviour(env_id, out_dir, settings, expert=kind == "medium-expert", progress=progress,
+                             setting=f"task.{task_name}.behaviour")  # fmt: skip
     generator: dict[str, Any] = {
         "recipe": "d4rl-regenerated",
         "env_id": env_id,

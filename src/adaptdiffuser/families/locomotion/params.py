@@ -54,7 +54,7 @@ class BehaviourSettings(BaseModel):
     #: (~2100 steps/s, 33 after ~100k steps in under a minute; SAC and TD3 had not after 50-60k steps / 13 min)
     algorithm: Algorithm = "ppo"
     seed: int = Field(0, ge=0)
-    #: normalized score at which training stops and the ``medium`` policy is saved
+    #: normalized score the ``medium`` policy aims at: the centre of its band
     medium_score: FiniteFloat = 33.0
     #: half-width of the band the ``medium`` policy's score must lie in: ``medium_score +- medium_band``, measured
     #: as the dataset is recorded (with ``rollout_noise``) on ``band_episodes`` episodes; training that jumps over
@@ -66,8 +66,9 @@ class BehaviourSettings(BaseModel):
     min_eval_every: int = Field(2_048, gt=0)
     #: normalized score the ``expert`` policy (``medium-expert`` only) trains on to
     expert_score: FiniteFloat = 90.0
-    #: environment steps budget to reach ``medium_score`` (the policy there is saved, reached or not)
-    max_train_steps: int = Field(300_000, gt=0)
+    #: environment steps budget for the medium policy (all steps trained, paths gone back from included; without a
+    #: band, the policy at the budget's end is saved, reached or not)
+    max_train_steps: int = Field(600_000, gt=0)
     #: total environment steps budget to reach ``expert_score``
     max_expert_steps: int = Field(1_000_000, gt=0)
     #: uniformly random steps before the off-policy learners start (SAC, TD3)
