@@ -103,7 +103,7 @@ def test_compiling_without_a_cpp_compiler_names_the_setting(monkeypatch: pytest.
 
 
 def test_compile_settings_are_validated_params_off_by_default_in_the_library() -> None:
-    assert Params().compile.training is False  # the library's default; the profiles choose (README "Speed")
+    assert Params().compile.training is False  # the library's default; the profiles choose (docs/speed.md)
     with pytest.raises((ConfigError, ValueError), match="compile"):
         Params(compile={"training": "sometimes"})
     assert dataclasses.asdict(Params(compile={"sampling": True}).compile) == {"training": False, "sampling": True}

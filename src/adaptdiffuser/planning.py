@@ -19,7 +19,7 @@ from adaptdiffuser.seeding import derive_seed
 
 class Planner:
     """Samples state-action plans from start to goal with the EMA model of a bundle (its network compiled when
-    ``compiled``: the first batch of each shape compiles, README "Speed")."""
+    ``compiled``: the first batch of each shape compiles, docs/speed.md)."""
 
     def __init__(self, bundle: ModelBundle, sampler: Sampler, device: torch.device, compiled: bool = False) -> None:
         self.model = bundle.ema.to(device).eval()
@@ -94,7 +94,7 @@ class ValuePlanningController(Controller):
 
     With ``warm_start_step`` set, every decision after an episode's first starts its samples from the plan it
     executed last, shifted by one step and noised to that diffusion step, instead of from pure noise: the chain
-    then visits only the sampler's steps below it (fewer network calls; score and speed: README "Speed")."""
+    then visits only the sampler's steps below it (fewer network calls; score and speed: docs/speed.md)."""
 
     def __init__(
         self,

@@ -62,7 +62,7 @@ class Params:
     evolve: Str | None = DEFAULT_TASK  # the task the evolution phases run on; null = phase 0 only
     evolution: EvolutionParams = field(default_factory=EvolutionParams)
     alpha: Float = 0.0
-    compile: CompileParams = field(default_factory=CompileParams)  # torch.compile of the U-Net (README "Speed")
+    compile: CompileParams = field(default_factory=CompileParams)  # torch.compile of the U-Net (docs/speed.md)
     seeds: tuple[Seed, ...] = (0,)  # training seeds: every training stage runs once per seed (see seeding.py)
     phases: tuple[PhaseParams, ...] = ()  # from a mapping phase<k>: {previous: j, <evolution overrides>}
     sweep: SweepParams = field(default_factory=SweepParams)

@@ -50,7 +50,7 @@ class ModelParams:
 @dataclass(frozen=True, config=SECTION)
 class CompileParams:
     """Run the U-Net under ``torch.compile`` (inductor) when training and when sampling: the same function within
-    float rounding, faster once compiled (README "Speed"), at a compile cost paid once per process."""
+    float rounding, faster once compiled (docs/speed.md), at a compile cost paid once per process."""
 
     training: Bool = False
     sampling: Bool = False

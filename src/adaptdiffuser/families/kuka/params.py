@@ -102,7 +102,7 @@ class SelectionSettings(BaseModel):
 
     #: reject an episode whose executed states leave the stacking data's range of some dimension by more than this
     #: fraction of that range (a block tipped over or flung away: states the min-max model cannot plan, which
-    #: dominated fine-tuning's loss without this check, README "KUKA"); null: no check (the reference)
+    #: dominated fine-tuning's loss without this check, docs/kuka.md); null: no check (the reference)
     max_range_excess: float | None = Field(0.25, ge=0)
 
 
