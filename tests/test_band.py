@@ -20,7 +20,7 @@ class CurveTrainee:
     """A learner whose score is ``curve(steps)``; going back returns to the snapshot's steps."""
 
     def __init__(self, curve: Callable[[int], float]) -> None:
-        self.curve, self.at, self.band_measured = curve, 0, 0
+        self.curve, self.at, self.band_measured, self.stderr = curve, 0, 0, 0.0
 
     def train(self, steps: int) -> int:
         self.at += steps
@@ -32,9 +32,9 @@ class CurveTrainee:
     def quick_score(self) -> float:
         return self.curve(self.at)
 
-    def band_score(self) -> float:
+    def band_score(self) -> tuple[float, float]:
         self.band_measured += 1
-        return self.curve(self.at)
+        return self.curve(self.at), self.stderr
 
     def snapshot(self) -> int:
         return self.at
@@ -75,9 +75,19 @@ def test_a_curve_that_never_reaches_the_band_is_refused_naming_the_settings() ->
 def test_a_score_is_confirmed_before_it_is_chosen() -> None:
     """A cheap score inside the band whose confirmation is below it does not end the search."""
     trainee = CurveTrainee(lambda steps: 31.0 + steps / 10_000)
-    trainee.band_score = lambda: trainee.curve(trainee.at) - 3.0  # type: ignore[method-assign]
+    trainee.band_score = lambda: (trainee.curve(trainee.at) - 3.0, 0.0)  # type: ignore[method-assign]
     choice = search_band(trainee, BAND, 10_000, 2_048, 100_000)
     assert choice.steps == 20_000 and choice.score == pytest.approx(30.0)  # at 10 000: 32 quick, 29 confirmed
+
+
+def test_a_score_inside_the_band_by_less_than_its_stderr_is_not_chosen() -> None:
+    """30.5 +- 1 could well be a 29.5 policy: training goes on until the score is inside by more than its error."""
+    trainee = CurveTrainee(lambda steps: 29.0 + steps / 2_000)
+    trainee.stderr = 1.0
+    records: list[dict] = []
+    choice = search_band(trainee, BAND, 1_000, 1_000, 100_000, records.append)
+    assert [r["band_score"] for r in records if r["action"] == "continue" and "band_score" in r][-1] == 30.5
+    assert choice.steps == 4_000 and choice.score == 31.0 and choice.stderr == 1.0
 
 
 def test_recorder_truncation_ends_the_cut_episode_with_a_timeout() -> None:
@@ -113,4 +123,5 @@ def test_a_real_learner_is_chosen_inside_the_band_with_its_replay(tmp_path: Path
     medium = summary["medium"]
     assert medium["band"] == [-100.0, 100.0] and medium["steps"] == 150 and medium["rewinds"] == 0
     assert medium["score_episodes"] == 2 and medium["normalized_score"] == summary["curve"][-1]["band_score"]
+    assert medium["score_stderr"] == summary["curve"][-1]["band_stderr"] >= 0.0
     assert len(result.replay["episode"]) == 150 and (tmp_path / "medium.zip").exists()

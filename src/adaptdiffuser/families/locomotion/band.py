@@ -4,8 +4,9 @@ Float rounding differs between CPUs, so the same seeded learner follows another 
 evaluation every ``eval_every`` steps can jump over a narrow score range (30.8 -> 65.4 seen on Hopper). The search
 trains in chunks and evaluates after each; a score near the band is measured again on more episodes, as the data
 will be recorded; a score above the band sends training back to its last checkpoint below it, with a shorter
-interval and a fresh seed. It ends at the first confirmed score inside the band, or refuses when the step budget
-runs out. The rule is written against :class:`Trainee`, so it runs the same on a real learner and on a score curve.
+interval and a fresh seed. It ends at the first confirmed score inside the band by at least one standard error of
+that score (a mean of 20 Hopper episodes at 30.2 gave a dataset of 27.9), or refuses when the step budget runs
+out. The rule is written against :class:`Trainee`, so it runs the same on a real learner and on a score curve.
 """
 
 from __future__ import annotations
@@ -35,6 +36,10 @@ class Band:
     def __contains__(self, score: float) -> bool:
         return self.low <= score <= self.high
 
+    def holds(self, score: float, stderr: float) -> bool:
+        """``score`` is inside the band by at least ``stderr`` on both sides."""
+        return self.low + stderr <= score <= self.high - stderr
+
     def near(self, score: float) -> bool:
         """Within one more half-width of the band: worth measuring on more episodes."""
         return self.low - self.half_width <= score <= self.high + self.half_width
@@ -52,8 +57,9 @@ class Trainee(Protocol):
     def quick_score(self) -> float:
         """A cheap estimate of the current policy's normalized score."""
 
-    def band_score(self) -> float:
-        """The current policy's normalized score as the data will be recorded, on enough episodes to be sure."""
+    def band_score(self) -> tuple[float, float]:
+        """The current policy's normalized score as the data will be recorded, on enough episodes to be sure: the
+        mean and its standard error."""
 
     def snapshot(self) -> Any:
         """The current state, for :meth:`restore`."""
@@ -68,11 +74,12 @@ class BandNotReachedError(StageError):
 
 @dataclass(frozen=True)
 class BandChoice:
-    """The chosen policy: its training steps, confirmed score, steps spent in all (discarded paths included) and
-    how many times training went back."""
+    """The chosen policy: its training steps, confirmed score and that score's standard error, the steps spent in
+    all (discarded paths included) and how many times training went back."""
 
     steps: int
     score: float
+    stderr: float
     spent: int
     rewinds: int
 
@@ -87,7 +94,7 @@ def search_band(
     setting: str = "behaviour",
 ) -> BandChoice:
     """Train ``trainee`` until a policy's confirmed score lies in ``band`` (see the module's docstring); every
-    evaluation is passed to ``on_eval`` as ``{steps, spent, quick_score, band_score?, action}``. Raises
+    evaluation is passed to ``on_eval`` as ``{steps, spent, quick_score, band_score?, band_stderr?, action}``. Raises
     :class:`BandNotReachedError` naming the settings to change when ``budget`` steps are spent first."""
     spent, rewinds, interval = 0, 0, eval_every
     below = trainee.snapshot()
@@ -98,12 +105,13 @@ def search_band(
         record: dict[str, Any] = {"steps": trainee.steps(), "spent": spent, "quick_score": quick}
         score = quick
         if band.near(quick):
-            score = record["band_score"] = trainee.band_score()
+            score, record["band_stderr"] = trainee.band_score()
+            record["band_score"] = score
         highest = max(highest, score)
-        if "band_score" in record and score in band:
+        if "band_score" in record and band.holds(score, record["band_stderr"]):
             on_eval(record | {"action": "choose"})
-            return BandChoice(trainee.steps(), score, spent, rewinds)
-        if score < band.low:
+            return BandChoice(trainee.steps(), score, record["band_stderr"], spent, rewinds)
+        if score < band.low or ("band_score" in record and score in band):  # below, or inside but not surely
             on_eval(record | {"action": "continue"})
             below = trainee.snapshot()
             continue

@@ -330,7 +330,8 @@ def train_behaviour(
                              on_eval, setting=setting)  # fmt: skip
         info = {"file": "medium.zip", "target": settings.medium_score, "band": [band.low, band.high],
                 "reached": True, "steps": choice.steps, "normalized_score": choice.score,
-                "score_episodes": settings.band_episodes, "score_noise": settings.rollout_noise,
+                "score_stderr": choice.stderr, "score_episodes": settings.band_episodes,
+                "score_noise": settings.rollout_noise,
                 "spent_steps": choice.spent, "rewinds": choice.rewinds,
                 "wall_s": time.perf_counter() - start}  # fmt: skip
         return trainee.learner, info, save(trainee.learner, "medium")
@@ -376,18 +377,18 @@ class _Learner:
     def steps(self) -> int:
         return int(self.learner.num_timesteps)
 
-    def _score(self, episodes: int, seed: int) -> float:
-        """The mean normalized score as the data will be recorded: deterministic action plus rollout noise."""
-        returns = evaluate_policy_returns(
-            self.learner, self.eval_sim, episodes, seed, noise=self.settings.rollout_noise
-        )
-        return float(normalized_score(returns.mean(), self.eval_sim.name))
+    def _scores(self, episodes: int, seed: int) -> np.ndarray:
+        """Normalized scores per episode as the data will be recorded: deterministic action plus rollout noise."""
+        noise = self.settings.rollout_noise
+        returns = evaluate_policy_returns(self.learner, self.eval_sim, episodes, seed, noise=noise)
+        return np.asarray(normalized_score(returns, self.eval_sim.name))
 
     def quick_score(self) -> float:
-        return self._score(self.settings.eval_episodes, self.settings.eval_seed)
+        return float(self._scores(self.settings.eval_episodes, self.settings.eval_seed).mean())
 
-    def band_score(self) -> float:
-        return self._score(self.settings.band_episodes, self.settings.eval_seed + 1)
+    def band_score(self) -> tuple[float, float]:
+        scores = self._scores(self.settings.band_episodes, self.settings.eval_seed + 1)
+        return float(scores.mean()), float(scores.std(ddof=1) / np.sqrt(len(scores)))
 
     def snapshot(self) -> tuple[bytes, int]:
         buffer = io.BytesIO()

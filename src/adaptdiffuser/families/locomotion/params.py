@@ -61,7 +61,8 @@ class BehaviourSettings(BaseModel):
     #: the band goes back to its last checkpoint below it and evaluates more often. ``None``: no band (stop at the
     #: first evaluation at or above ``medium_score``, or at the budget's end; for tiny test budgets only)
     medium_band: FiniteFloat | None = Field(3.0, gt=0.0)
-    band_episodes: int = Field(20, gt=0)
+    #: episodes of that measurement; the score must lie inside the band by one standard error of its mean
+    band_episodes: int = Field(50, gt=1)
     #: the shortest interval between evaluations when going back (rounded up to whole PPO rollouts)
     min_eval_every: int = Field(2_048, gt=0)
     #: normalized score the ``expert`` policy (``medium-expert`` only) trains on to
