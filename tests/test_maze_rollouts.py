@@ -86,12 +86,13 @@ def cell_tasks(pairs: list[tuple[tuple[int, int], tuple[int, int]]], coins: list
     )
 
 
-def tiny_planner() -> Planner:
+def tiny_planner(dtype: torch.dtype = torch.float32) -> Planner:
     torch.manual_seed(0)
     normalizer = MinMaxNormalizer(np.array([-1, -1, -2, -2, -5, -5.0]), np.array([1, 1, 2, 2, 5, 5.0]))
     params = Params()
     task = params.resolve(TASK)
     bundle = make_bundle(params.model, type(task.diffusion)(horizon=16, n_steps=4), 4, 2, normalizer)
+    bundle.ema.to(dtype)
     return Planner(bundle, DDIMSampler(2), CPU)
 
 
@@ -241,7 +242,9 @@ def test_rollouts_are_reproducible_and_do_not_depend_on_the_batch_size() -> None
     family = get_family("maze2d")
     env = maze_sim()
     tasks = sample_navigation_tasks(env, 5, np.random.default_rng(3))
-    planner = tiny_planner()
+    # float64: no CPU's choice of kernels by batch size shows in the plans (see test_batch_independence), so the
+    # closed loop cannot amplify it into another arrival step
+    planner = tiny_planner(torch.float64)
 
     def rollouts(batch_size: int, seed: int = 11) -> list[TrackedTrajectory]:
         return run_rollouts(lambda: family.make_simulator(task), planner, tasks, seed, 4, 40, batch_size)
@@ -251,7 +254,7 @@ def test_rollouts_are_reproducible_and_do_not_depend_on_the_batch_size() -> None
         other = rollouts(batch_size)
         for a, b in zip(alone, other, strict=True):
             assert len(a.observations) == len(b.observations) and a.steps_to_goal == b.steps_to_goal
-            np.testing.assert_allclose(a.observations, b.observations, rtol=0.0, atol=1e-4)
+            np.testing.assert_allclose(a.observations, b.observations, rtol=0.0, atol=1e-9)
     again = rollouts(5)
     for a, b in zip(rollouts(5), again, strict=True):
         np.testing.assert_array_equal(a.observations, b.observations)

@@ -201,7 +201,7 @@ class PlansForEveryRow(ValuePlanningController):
 def test_ended_episodes_are_not_planned_for_and_the_others_do_not_change(
     tiny_model_params, tiny_diffusion_params
 ) -> None:
-    planner = _planner(tiny_model_params, tiny_diffusion_params)
+    planner = _planner(tiny_model_params, tiny_diffusion_params, torch.float64)  # other batch shapes: see below
     log = CallLog(planner.model.model)
     guidance = ValueGuidance(PreferFirstAction(), scale=0.0)
 
@@ -216,5 +216,6 @@ def test_ended_episodes_are_not_planned_for_and_the_others_do_not_change(
     assert skipping.lengths == [3, 20]
     every, sizes = run(PlansForEveryRow)
     assert sizes == [4] * 20
-    for a, b in zip(skipping.executed, every.executed, strict=True):  # float tolerance: other batch shapes
-        np.testing.assert_allclose(a, b, atol=1e-4)
+    # other batch shapes, compared in float64, where no CPU's kernel choice by batch size shows over 20 steps
+    for a, b in zip(skipping.executed, every.executed, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0.0, atol=1e-9)
