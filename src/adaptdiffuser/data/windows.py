@@ -87,7 +87,7 @@ def subset_episodes(traj: Trajectories, fraction: float, rng: np.random.Generato
 def take_episodes(traj: Trajectories, indices: np.ndarray | list[int]) -> Trajectories:
     """The episodes of ``traj`` at positions ``indices`` (in :meth:`Trajectories.episodes` order), in that order."""
     episodes = traj.episodes()
-    rows = np.concatenate([np.arange(episodes[i].start, episodes[i].stop) for i in indices]).astype(np.int64)
+    rows = np.concatenate([np.zeros(0, np.int64), *(np.arange(episodes[i].start, episodes[i].stop) for i in indices)])
     return Trajectories(
         episode_id=traj.episode_id[rows],
         step=traj.step[rows],

@@ -10,6 +10,7 @@ import mlflow
 
 from adaptdiffuser.config import Params
 from adaptdiffuser.data.schema import Trajectories, read_trajectories, write_trajectories
+from adaptdiffuser.data.windows import take_episodes
 from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.registry import get_family
 from adaptdiffuser.plots import save_discriminator_histograms
@@ -93,16 +94,4 @@ def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, se
 
 def no_rows(generated: Trajectories, generator: dict) -> Trajectories:
     """An empty selection: ``generated``'s columns with no rows, its metadata naming this stage as generator."""
-    return replace(
-        generated,
-        episode_id=generated.episode_id[:0],
-        step=generated.step[:0],
-        observation=generated.observation[:0],
-        action=generated.action[:0],
-        reward=generated.reward[:0],
-        terminal=generated.terminal[:0],
-        timeout=generated.timeout[:0],
-        metadata={**generated.metadata, "generator": generator},
-        extra={name: values[:0] for name, values in generated.extra.items()},
-        sim_state=None if generated.sim_state is None else generated.sim_state[:0],
-    )
+    return replace(take_episodes(generated, []), metadata={**generated.metadata, "generator": generator})
