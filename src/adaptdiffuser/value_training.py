@@ -36,11 +36,19 @@ def value_loss(
     generator: torch.Generator | None = None,
 ) -> torch.Tensor:
     """Mean squared error of the value of noisy, first-state-inpainted windows ``x0`` against ``target``."""
+    t, xt = noised_windows(diffusion, x0, generator)
+    return ((value_net(xt, t) - target) ** 2).mean()
+
+
+def noised_windows(
+    diffusion: GaussianDiffusion, x0: torch.Tensor, generator: torch.Generator | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Uniformly drawn diffusion steps and ``x0`` noised to them with its first state inpainted, as the sampler
+    presents noisy plans to the value during guidance."""
     t = torch.randint(0, diffusion.n_steps, (x0.shape[0],), device=x0.device, generator=generator)
     noise = torch.randn(x0.shape, device=x0.device, generator=generator)
     act_dim = diffusion.act_dim
-    xt = apply_inpainting(diffusion.q_sample(x0, t, noise), {0: x0[:, 0, act_dim:]}, act_dim)
-    return ((value_net(xt, t) - target) ** 2).mean()
+    return t, apply_inpainting(diffusion.q_sample(x0, t, noise), {0: x0[:, 0, act_dim:]}, act_dim)
 
 
 def train_value(
@@ -98,10 +106,7 @@ def heldout_r2(
     noisy, clean = [], []
     for i in range(0, windows, batch_size):
         xb = x0[i : i + batch_size]
-        t = torch.randint(0, diffusion.n_steps, (len(xb),), device=device, generator=gen)
-        noise = torch.randn(xb.shape, device=device, generator=gen)
-        act_dim = diffusion.act_dim
-        xt = apply_inpainting(diffusion.q_sample(xb, t, noise), {0: xb[:, 0, act_dim:]}, act_dim)
+        t, xt = noised_windows(diffusion, xb, gen)
         noisy.append(value_net(xt, t))
         clean.append(value_net(xb, torch.zeros_like(t)))
 
