@@ -28,14 +28,14 @@ import torch
 
 from adaptdiffuser.checkpoint import ModelBundle, load_bundle, make_bundle, save_bundle
 from adaptdiffuser.config import PretrainParams, TaskParams, load_params
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.data.schema import Trajectories, read_trajectories, write_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset, joint_array
 from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, standard_error, summarize
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.training import carried_optimizer, fingerprint, train

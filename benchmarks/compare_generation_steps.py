@@ -23,12 +23,13 @@ import torch
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import load_params
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.layout import model_dir
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed, training_seed
-from adaptdiffuser.stages.common import model_dir, resolve_device
+from adaptdiffuser.stages.common import resolve_device
 
 
 def main() -> None:

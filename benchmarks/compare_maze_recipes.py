@@ -34,13 +34,13 @@ import yaml
 
 from adaptdiffuser.checkpoint import ModelBundle, load_bundle, make_bundle, save_bundle
 from adaptdiffuser.config import Params, TaskParams, apply_profile, params_from_dict, set_dotted
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.data.schema import Trajectories, read_trajectories, write_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset, joint_array, subset_episodes
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.training import train

@@ -18,7 +18,7 @@ import time
 from trained_workspace import add_workspace_args, load_trained
 
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
 
 

@@ -24,7 +24,7 @@ from trained_workspace import add_workspace_args, load_trained
 
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, standard_error
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
 
 

@@ -20,16 +20,16 @@ import torch
 
 from adaptdiffuser.checkpoint import ModelBundle, load_bundle, make_bundle
 from adaptdiffuser.config import GenerateParams, TaskParams, apply_profile, load_params
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
 from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.layout import model_dir
 from adaptdiffuser.models.compiled import compile_network
 from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.planning import Planner, ValuePlanningController
-from adaptdiffuser.stages.common import model_dir
 
 PROFILES = Path(__file__).resolve().parents[1] / "profiles"
 

@@ -14,9 +14,10 @@ import yaml
 from adaptdiffuser.checkpoint import ModelBundle, load_bundle
 from adaptdiffuser.config import params_from_dict, set_dotted
 from adaptdiffuser.config.tasks import TaskParams
-from adaptdiffuser.families.base import TaskFiles
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.io import read_json
-from adaptdiffuser.stages.common import model_dir, reference_path, resolve_device
+from adaptdiffuser.layout import model_dir, reference_path
+from adaptdiffuser.stages.common import resolve_device
 
 
 def add_workspace_args(parser: argparse.ArgumentParser, task: str | None = None, episodes: int | None = None) -> None:

@@ -6,4 +6,5 @@ bash scripts/setup.sh
 # shellcheck disable=SC1091
 source .venv/bin/activate
 ruff check src pipeline tests benchmarks
+lint-imports   # the import contracts of pyproject.toml (docs/architecture.md)
 pytest -q "$@"

@@ -10,16 +10,16 @@ import mlflow
 import numpy as np
 import pytest
 import torch
+from deps_trace import traced_env
 from smoke_project import TRACES, make_smoke_project, run_tool
 
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import Trajectories, make_metadata
 from adaptdiffuser.data.windows import WindowDataset, joint_array
-from adaptdiffuser.deps_trace import ENV_VAR
 from adaptdiffuser.families.maze2d.expert import collect_expert_stream
 from adaptdiffuser.families.maze2d.simulator import Maze2D
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 
 
 def maze_sim(params: Params | None = None, task: str = "maze2d-umaze") -> Maze2D:
@@ -92,5 +92,5 @@ def smoke_repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A temporary git + DVC repository holding the project on the smoke profile, after one traced `dvc repro`
     (its stage traces under :data:`smoke_project.TRACES`). Tests that change it restore it, or work on a copy."""
     root = make_smoke_project(tmp_path_factory.mktemp("project"), run_tool)
-    run_tool(["dvc", "repro"], root, **{ENV_VAR: str(root / TRACES)})
+    run_tool(["dvc", "repro"], root, **traced_env(root / TRACES))
     return root

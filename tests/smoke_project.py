@@ -10,7 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-#: where the shared smoke repro (the ``smoke_repo`` fixture) writes its stage traces (adaptdiffuser.deps_trace)
+#: where the shared smoke repro (the ``smoke_repo`` fixture) writes its stage traces (tests/deps_trace.py)
 TRACES = ".dvc/tmp/deps-trace"
 PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
 

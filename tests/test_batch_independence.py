@@ -14,17 +14,17 @@ from conftest import maze_sim
 
 from adaptdiffuser.checkpoint import ModelBundle, make_bundle
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params, apply_profile, params_from_dict
+from adaptdiffuser.contract import EpisodeBatchResult, TaskFiles
 from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.diffusion.guidance import CoinObjective, Guidance, GuidanceBase, ValueGuidance
 from adaptdiffuser.diffusion.noise import RowNoise
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler, Sampler
-from adaptdiffuser.evaluation import EpisodeBatchResult, run_episodes
+from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.evolution.generate import generate_plans
-from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.maze2d.execution import PlannerController
 from adaptdiffuser.families.maze2d.tasks import add_coins, sample_navigation_tasks
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed

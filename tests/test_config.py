@@ -25,7 +25,7 @@ from adaptdiffuser.config import (
     stage_names,
 )
 from adaptdiffuser.families.maze2d.params import EnvParams, Maze2DTaskParams
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILES = REPO / "profiles"
@@ -46,6 +46,12 @@ def quick() -> dict:
 def write_params(tmp_path: Path, overlay: dict) -> Path:
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(deep_merge(quick(), overlay), sort_keys=False))
+    return path
+
+
+def write_params_raw(tmp_path: Path, raw: dict) -> Path:
+    path = tmp_path / "raw.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path
 
 
@@ -178,15 +184,23 @@ def test_invalid_profile_does_not_overwrite_params(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["params.yaml", "profiles"]
 
 
-def test_partial_file_takes_defaults(tmp_path: Path) -> None:
+def test_an_empty_or_partial_file_is_refused_naming_what_it_misses(tmp_path: Path) -> None:
+    """A run never falls back on values its params file does not write (the profiles are the one source)."""
     path = tmp_path / "params.yaml"
     path.write_text("pretrain:\n  steps: 5\n")
-    params = load_params(path)
-    assert params.pretrain.steps == 5 and params.pretrain.batch_size == Params().pretrain.batch_size
-    assert params.model == Params().model
+    with pytest.raises(ConfigError, match=r"missing model, diffusion, pretrain\.batch_size, pretrain\.grad_accum"):
+        load_params(path)
     empty = tmp_path / "empty.yaml"
     empty.write_text("")
-    assert load_params(empty) == Params()
+    with pytest.raises(ConfigError, match=r"empty.yaml: missing model, .* and \d+ more; .*adaptdiffuser profile"):
+        load_params(empty)
+    full = quick()
+    del full["evaluate"]["pictures"], full["evolution"]["generate"]["tasks"]
+    with pytest.raises(ConfigError, match=r"missing evaluate\.pictures, evolution\.generate\.tasks;"):
+        load_params(write_params_raw(tmp_path, full))
+    del full["imports"], full["collect_tasks"]  # optional: no imports, collect every task
+    full |= {"evaluate": quick()["evaluate"], "evolution": quick()["evolution"]}
+    assert load_params(write_params_raw(tmp_path, full)) == load_params(REPO / "params.yaml")
 
 
 BAD = [
@@ -491,14 +505,15 @@ def test_describe_lists_the_task_and_the_stages_dvc_runs() -> None:
     assert get_family("maze2d").describe(task) == {"maze": "umaze", "episode_steps": 300}  # 300-step episodes
     stages = [line.strip().split(":")[0] for line in lines[lines.index("stages:") + 1 :]]
     assert stages == stage_names(params)
-    assert stages[:5] == [
-        f"{s}@{UMAZE}" for s in ("collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0")
+    assert stages[:6] == [
+        f"{s}@{UMAZE}" for s in ("code", "collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0")
     ]
     phase_stages = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
-    assert stages[5:12] == [f"{s}@phase1" for s in phase_stages]
-    assert stages[-2:] == ["summarize", "report"] and len(stages) == 5 + 7 * 2 + 2
+    assert stages[6:13] == [f"{s}@phase1" for s in phase_stages]
+    assert stages[-2:] == ["summarize", "report"] and len(stages) == 6 + 7 * 2 + 2
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
     items = {"${tasks}": params.tasks, "${coin_tasks}": params.coin_tasks, "${phases}": params.phase_names}
+    items |= {"${task}": list(params.task)}
     items |= {"${collect_tasks}": params.collect_tasks, "${imports}": list(params.imports)}
     expanded = {f"{name}@{k}" for name, spec in dvc.items() if "foreach" in spec for k in items[spec["foreach"]]} | {
         name for name, spec in dvc.items() if "foreach" not in spec
@@ -517,7 +532,7 @@ def test_describe_and_stages_of_a_phase0_only_locomotion_task() -> None:
     )
     stages = stage_names(params)
     assert stages == [
-        *(f"{s}@hopper-medium" for s in ("collect", "reference", "pretrain", "evaluate-phase0")),
+        *(f"{s}@hopper-medium" for s in ("code", "collect", "reference", "pretrain", "evaluate-phase0")),
         "summarize",
         "report",
     ]

@@ -31,7 +31,7 @@ from adaptdiffuser.evolution.generate import generate_plans, split_task_trajecto
 from adaptdiffuser.families.maze2d.execution import PlanFollower
 from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, picks_coin_then_reaches_goal
 from adaptdiffuser.families.maze2d.tasks import sample_navigation_tasks
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
 
 THRESHOLD = 0.3

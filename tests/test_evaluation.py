@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from conftest import maze_sim
 
+from adaptdiffuser.contract import EpisodeBatchResult
 from adaptdiffuser.evaluation import (
-    EpisodeBatchResult,
     ExpertController,
     RandomController,
     episode_rng,
@@ -17,7 +17,7 @@ from adaptdiffuser.evaluation import (
     run_episodes,
     summarize,
 )
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 
 
 def umaze_factory():

@@ -18,9 +18,7 @@ from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, load_params
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.diffusion.samplers import DDIMSampler
-from adaptdiffuser.planning import Planner
-from adaptdiffuser.stages.collect import run_collect
-from adaptdiffuser.stages.common import (
+from adaptdiffuser.layout import (
     discriminator_metrics_path,
     discriminator_plot_path,
     generated_path,
@@ -29,6 +27,8 @@ from adaptdiffuser.stages.common import (
     results_dir,
     selected_path,
 )
+from adaptdiffuser.planning import Planner
+from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
 from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from adaptdiffuser.config import Params, params_from_dict
+from adaptdiffuser.contract import Family, Simulator
 from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.diffusion.conditions import CONDITIONINGS
-from adaptdiffuser.families.base import Family, Simulator
 from adaptdiffuser.families.maze2d.simulator import Maze2D
-from adaptdiffuser.families.registry import FAMILIES, get_family, task_params_model
+from adaptdiffuser.family_registry import FAMILIES, get_family, task_params_model
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "adaptdiffuser"
 # What the core may import of families/: the package itself, its interfaces and its registry.
@@ -70,7 +70,7 @@ def test_the_dependency_rule_sees_every_core_module_and_its_exceptions_exist() -
     # and the check recognises every spelling of a family import
     assert _family_imported("adaptdiffuser.families.maze2d.simulator.Maze2D") == "maze2d"
     assert _family_imported("adaptdiffuser.families.maze2d") == "maze2d"
-    assert _family_imported("adaptdiffuser.families.base.Simulator") is None
+    assert _family_imported("adaptdiffuser.contract.Simulator") is None
     assert _family_imported("adaptdiffuser.families") is None
 
 

@@ -20,7 +20,7 @@ from adaptdiffuser.config import DiffusionParams, EvolutionParams, FinetuneParam
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import Trajectories, make_metadata, write_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset, joint_array
-from adaptdiffuser.stages.common import dataset_path, model_dir, selected_path
+from adaptdiffuser.layout import dataset_path, model_dir, selected_path
 
 TASK = "maze2d-umaze"
 ACT = 2

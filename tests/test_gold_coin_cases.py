@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from adaptdiffuser.evaluation import Controller, run_episodes
+from adaptdiffuser.contract import Controller
+from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.families.maze2d.gold_coin import (
     PAPER_MEDIUM_CASE,
     coin_cases,

@@ -32,7 +32,7 @@ from adaptdiffuser.families.maze2d.external import (
 )
 from adaptdiffuser.families.maze2d.layouts import MAZES, parse_layout
 from adaptdiffuser.families.maze2d.simulator import Maze2D
-from adaptdiffuser.stages.common import collect_dir, dataset_path
+from adaptdiffuser.layout import collect_dir, dataset_path
 from adaptdiffuser.stages.import_data import run_import
 from adaptdiffuser.stages.pretrain import run_pretrain
 

@@ -234,9 +234,9 @@ def test_generation_records_executed_plan_chains_and_the_discriminator_judges_th
     by the discriminator, and the kept ones as a state-only dataset."""
     from adaptdiffuser.checkpoint import load_bundle
     from adaptdiffuser.config import GenerateParams
+    from adaptdiffuser.contract import TaskFiles
     from adaptdiffuser.diffusion.samplers import make_sampler
-    from adaptdiffuser.families.base import TaskFiles
-    from adaptdiffuser.families.registry import get_family
+    from adaptdiffuser.family_registry import get_family
     from adaptdiffuser.planning import Planner
 
     params = load_params(smoke_repo / "params.yaml")

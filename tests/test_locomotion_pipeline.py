@@ -20,9 +20,8 @@ from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.families.locomotion.evolution import selection_rule
 from adaptdiffuser.families.locomotion.family import episode_returns
 from adaptdiffuser.families.locomotion.reference import normalized_score
-from adaptdiffuser.families.registry import get_family
-from adaptdiffuser.stages.collect import run_collect
-from adaptdiffuser.stages.common import (
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.layout import (
     dataset_path,
     generated_path,
     model_dir,
@@ -31,6 +30,7 @@ from adaptdiffuser.stages.common import (
     results_dir,
     selected_path,
 )
+from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
 from adaptdiffuser.stages.finetune import run_finetune

@@ -14,7 +14,7 @@ from adaptdiffuser.families.maze2d.execution import PlanFollower
 from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, parse_layout
 from adaptdiffuser.families.maze2d.params import EnvParams, Maze2DTaskParams
 from adaptdiffuser.families.maze2d.simulator import Maze2D, bfs_distances, resolve_layout, shortest_path
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 
 CUSTOM = [
     "######",

@@ -14,19 +14,19 @@ from conftest import maze_sim
 
 from adaptdiffuser.checkpoint import make_bundle
 from adaptdiffuser.config import ConfigError, DiscriminateParams, Params, apply_profile, params_from_dict
+from adaptdiffuser.contract import TaskFiles, TrackedTrajectory
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.windows import WindowDataset
 from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.evolution.discriminator import QuantileRule, TopKRule, TrackedTrajectory
+from adaptdiffuser.evolution.discriminator import QuantileRule, TopKRule
 from adaptdiffuser.evolution.generate import NavigationTasks, task_trajectories
-from adaptdiffuser.families.base import TaskFiles
 from adaptdiffuser.families.maze2d.evolution import judge_rollouts, stay_after_arrival
 from adaptdiffuser.families.maze2d.execution import PlannerController
 from adaptdiffuser.families.maze2d.rollouts import ERROR_COLUMN, real_length, run_rollouts, settle_at_goal
 from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, RolloutRule
 from adaptdiffuser.families.maze2d.tasks import sample_navigation_tasks
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 

@@ -25,11 +25,12 @@ from mlflow.tracking import MlflowClient
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import apply_profile, params_from_dict
+from adaptdiffuser.layout import dataset_path, model_dir
 from adaptdiffuser.stages.collect import run_collect
-from adaptdiffuser.stages.common import dataset_path, file_digest, model_dir
+from adaptdiffuser.stages.common import file_digest
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.summarize import log_evolution
-from adaptdiffuser.tracking import (
+from adaptdiffuser.tooling.mlflow_logging import (
     EXPERIMENT_KIND,
     EXPERIMENT_KIND_TAG,
     PARENT_RUN_ENV,

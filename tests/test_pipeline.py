@@ -14,6 +14,7 @@ import networkx as nx
 import pyarrow.parquet as pq
 import pytest
 import yaml
+from deps_trace import check, load_traces, missing_message
 from dvc.repo import Repo
 from mlflow.tracking import MlflowClient
 from smoke_project import TRACES
@@ -23,14 +24,14 @@ from smoke_project import tool_env as _env
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import apply_profile, load_params, stage_names
 from adaptdiffuser.data.schema import read_trajectories
-from adaptdiffuser.deps_trace import check, load_traces, missing_message
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
 PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
 MAZE, HOPPER, KUKA = "maze2d-umaze", "hopper-medium", "kuka-stacking"
 PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
 STAGES = [
+    *(f"code@{task}" for task in (MAZE, HOPPER, KUKA)),
     *(f"{stage}@{task}" for task in (MAZE, HOPPER, KUKA) for stage in PHASE0_STAGES),
     f"evaluate-coin-phase0@{MAZE}",
     *(f"{stage}@phase{k}" for k in (1, 2) for stage in PHASE_STAGES),
@@ -273,6 +274,23 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
         params.write_text(original)
 
 
+@pytest.mark.e2e
+@pytest.mark.parametrize("family", ["maze2d", "locomotion", "kuka"])
+def test_editing_one_family_leaves_the_other_families_stages_up_to_date(smoke_repo: Path, family: str) -> None:
+    """A comment appended to one file of a family changes that family's code fingerprint stage and nothing else:
+    `dvc status` names no stage of another family's task (the smoke profile has one task of each family)."""
+    tasks = {"maze2d": MAZE, "locomotion": HOPPER, "kuka": KUKA}
+    edited = smoke_repo / f"src/adaptdiffuser/families/{family}/params.py"
+    original = edited.read_text()
+    try:
+        edited.write_text(original + "# an edit that changes no behaviour\n")
+        status = json.loads(_run(["dvc", "status", "--json"], smoke_repo))
+    finally:
+        edited.write_text(original)
+    assert set(status) == {f"code@{tasks[family]}"}, status
+    assert json.loads(_run(["dvc", "status", "--json"], smoke_repo)) == {}
+
+
 def _dry_run(root: Path) -> set[str]:
     dry = _run(["dvc", "repro", "--dry"], root)
     return {stage for stage in STAGES if f"Running stage '{stage}'" in dry}
@@ -289,23 +307,33 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path
         graph = repo.index.graph  # edges point from a stage to the stages it depends on
         upstream = {stage.name: {dep.name for dep in graph.successors(stage)} for stage in graph.nodes}
         assert nx.is_directed_acyclic_graph(graph)
-    assert set(upstream) == set(stage_names(params)) == set(STAGES)
-    for task in (MAZE, HOPPER, KUKA):
-        assert upstream[f"collect@{task}"] == set()
-        assert upstream[f"reference@{task}"] == {f"collect@{task}"}
-        assert upstream[f"pretrain@{task}"] == {f"collect@{task}"}
-        assert upstream[f"evaluate-phase0@{task}"] == {f"pretrain@{task}", f"reference@{task}"}
-    assert upstream[f"evaluate-coin-phase0@{MAZE}"] == {f"pretrain@{MAZE}", f"reference@{MAZE}"}
+    assert set(upstream) == set(stage_names(params))
+    # STAGES, and a code fingerprint stage for each other task entry of the profile (tests use them outside DVC)
+    assert set(upstream) - set(STAGES) == {f"code@{task}" for task in params.task if task not in (MAZE, HOPPER, KUKA)}
+    for task in (MAZE, HOPPER, KUKA):  # every stage of a task depends on its task's code fingerprint
+        code = f"code@{task}"
+        assert upstream[code] == set()
+        assert upstream[f"collect@{task}"] == {code}
+        assert upstream[f"reference@{task}"] == {f"collect@{task}", code}
+        assert upstream[f"pretrain@{task}"] == {f"collect@{task}", code}
+        assert upstream[f"evaluate-phase0@{task}"] == {f"pretrain@{task}", f"reference@{task}", code}
+    code = f"code@{MAZE}"
+    assert upstream[f"evaluate-coin-phase0@{MAZE}"] == {f"pretrain@{MAZE}", f"reference@{MAZE}", code}
     for phase in params.phases:
         name = phase.name
         source = f"pretrain@{MAZE}" if phase.previous == 0 else f"finetune@phase{phase.previous}"
-        assert upstream[f"generate@{name}"] == {source, f"collect@{MAZE}"}
-        assert upstream[f"discriminate@{name}"] == {f"generate@{name}", f"collect@{MAZE}"}
-        assert upstream[f"finetune@{name}"] == {f"collect@{MAZE}", source, f"discriminate@{name}"}
-        assert upstream[f"evaluate@{name}"] == {f"finetune@{name}", f"reference@{MAZE}"}
-        assert upstream[f"evaluate-coin@{name}"] == {f"finetune@{name}", f"reference@{MAZE}"}
-        assert upstream[f"control@{name}"] == {f"collect@{MAZE}", source}
-        assert upstream[f"evaluate-control@{name}"] == {f"control@{name}", f"evaluate@{name}", f"reference@{MAZE}"}
+        assert upstream[f"generate@{name}"] == {source, f"collect@{MAZE}", code}
+        assert upstream[f"discriminate@{name}"] == {f"generate@{name}", f"collect@{MAZE}", code}
+        assert upstream[f"finetune@{name}"] == {f"collect@{MAZE}", source, f"discriminate@{name}", code}
+        assert upstream[f"evaluate@{name}"] == {f"finetune@{name}", f"reference@{MAZE}", code}
+        assert upstream[f"evaluate-coin@{name}"] == {f"finetune@{name}", f"reference@{MAZE}", code}
+        assert upstream[f"control@{name}"] == {f"collect@{MAZE}", source, code}
+        assert upstream[f"evaluate-control@{name}"] == {
+            f"control@{name}",
+            f"evaluate@{name}",
+            f"reference@{MAZE}",
+            code,
+        }
     assert upstream["summarize"] == {
         f"{stage}@{task}" for task in (MAZE, HOPPER, KUKA) for stage in ("reference", "evaluate-phase0")
     } | {f"evaluate-coin-phase0@{MAZE}"} | {

@@ -27,7 +27,7 @@ def test_our_commands_and_the_maze_simulator_print_only_our_messages() -> None:
         "sys.argv = ['adaptdiffuser', '--help']\n"
         "from adaptdiffuser.cli import app\n"
         "from adaptdiffuser.config import Params\n"
-        "from adaptdiffuser.families.registry import get_family\n"
+        "from adaptdiffuser.family_registry import get_family\n"
         "task = Params().resolve('maze2d-umaze')\n"
         "get_family(task.family).make_simulator(task)\n"  # imports gymnasium_robotics, as the stages do
         "try:\n"

@@ -21,11 +21,11 @@ from mlflow.tracking import MlflowClient
 
 from adaptdiffuser.config import ConfigError, apply_profile, load_params, params_from_dict
 from adaptdiffuser.errors import StageError
+from adaptdiffuser.layout import model_dir
 from adaptdiffuser.stages.collect import run_collect
-from adaptdiffuser.stages.common import model_dir
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
-from adaptdiffuser.sweep import (
+from adaptdiffuser.tooling.sweep import (
     _fail_trials_of_dead_workers,
     apply_best,
     load_worker_study,
@@ -33,7 +33,7 @@ from adaptdiffuser.sweep import (
     reproduce_command,
     retried_trial_number,
 )
-from adaptdiffuser.sweep_trials import plan_trial, run_trial, trial_raw
+from adaptdiffuser.tooling.sweep_trials import plan_trial, run_trial, trial_raw
 
 REPO = Path(__file__).resolve().parents[1]
 TASK = "maze2d-umaze"  # the smoke profile's evolved task, the one a sweep reruns the phases of

@@ -15,10 +15,10 @@ import yaml
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
 from adaptdiffuser.evaluation import standard_error
+from adaptdiffuser.layout import model_dir, phase_metrics_path, results_dir, selected_path
 from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.collect import run_collect
-from adaptdiffuser.stages.common import model_dir, phase_metrics_path, results_dir, selected_path
 from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
 from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin

@@ -12,12 +12,12 @@ from conftest import maze_sim
 from torch import nn
 
 from adaptdiffuser.checkpoint import make_bundle
+from adaptdiffuser.contract import Controller, Simulator, Step
 from adaptdiffuser.data.normalizer import GaussianNormalizer
 from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
-from adaptdiffuser.evaluation import Controller, run_episodes
-from adaptdiffuser.families.base import Simulator, Step
+from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.planning import Planner, ValuePlanningController, shift_plans
 from adaptdiffuser.seeding import derive_seed
 

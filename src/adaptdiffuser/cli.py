@@ -71,6 +71,20 @@ def _raise(err: Exception) -> None:
 
 
 @app.command()
+def code(
+    task: Annotated[str, typer.Option("--task", help="the task whose code is fingerprinted")],
+    family: Annotated[str, typer.Option("--family", help="the task's family (task.<name>.family)")],
+) -> None:
+    """Write ``code/<task>.json``: the digest of the core and of the family's folder (the ``code`` stage)."""
+    from adaptdiffuser.io import write_json
+    from adaptdiffuser.tooling.code_fingerprint import fingerprint, fingerprint_path
+
+    digest = _guarded(lambda: fingerprint(Path.cwd(), family))
+    write_json(fingerprint_path(task), digest)
+    typer.echo(f"{fingerprint_path(task)}: {len(digest['files'])} files of the core and family {family}")
+
+
+@app.command()
 def collect(params: ParamsPath = Path("params.yaml"), task: TaskOption = None, progress: Progress = True) -> None:
     """Collect a task's offline dataset (its family's recipe) into data/<task>/dataset.parquet."""
     from adaptdiffuser.stages.collect import run_collect
@@ -331,8 +345,8 @@ def sweep(
     device: Device = "auto",
 ) -> None:
     """Optuna sweep over the params in sweep.space: each trial reruns the evolution phases on the cached phase 0."""
-    from adaptdiffuser.dvc_experiments import EXPERIMENT_MODES
-    from adaptdiffuser.sweep import apply_best, run_sweep
+    from adaptdiffuser.tooling.dvc_experiments import EXPERIMENT_MODES
+    from adaptdiffuser.tooling.sweep import apply_best, run_sweep
 
     _params(params)
     if dvc_exp not in EXPERIMENT_MODES:
@@ -379,7 +393,7 @@ def set_value(
     written."""
     import yaml
 
-    from adaptdiffuser.sweep import apply_best
+    from adaptdiffuser.tooling.sweep import apply_best
 
     values = {}
     for assignment in assignments:
@@ -432,14 +446,7 @@ def check(params: ParamsPath = Path("params.yaml")) -> None:
 
 
 def run_stage(stage: str) -> None:
-    """Entry used by ``pipeline/<stage>.py``: the CLI subcommand ``stage`` with the script's arguments.
-
-    With ``ADAPTDIFFUSER_TRACE_DEPS`` set, the modules and files the stage uses are traced (``deps_trace``)."""
-    import os
+    """Entry used by ``pipeline/<stage>.py``: the CLI subcommand ``stage`` with the script's arguments."""
     import sys
 
-    if os.environ.get("ADAPTDIFFUSER_TRACE_DEPS"):  # imported only then: it is no dependency of the stages
-        from adaptdiffuser.deps_trace import install_from_env
-
-        install_from_env()
     app(args=[stage, *sys.argv[1:]], prog_name=f"pipeline/{stage}.py")

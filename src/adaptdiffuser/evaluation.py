@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 from tqdm import tqdm
 
-from adaptdiffuser.families.base import Simulator
+from adaptdiffuser.contract import Controller, EpisodeBatchResult, Simulator
 
 EnvFactory = Callable[[], Simulator]
 ResetFn = Callable[[Simulator, int], np.ndarray]
@@ -44,26 +43,6 @@ def paired_gain(scores: np.ndarray, control_scores: np.ndarray) -> dict[str, flo
     return {"gain_mean": float(diff.mean()), "gain_stderr": standard_error(diff), "gain_n_episodes": len(diff)}
 
 
-class Controller:
-    """Chooses actions for a batch of environments running in lock-step."""
-
-    #: the state sequences planned at t = 0 for the current batch, if the controller plans (for pictures)
-    first_plans: np.ndarray | None = None
-    #: which rows of the batch are still running, set by :func:`run_episodes` before each :meth:`act` (``None``:
-    #: all); a controller may skip the others, whose actions are never executed
-    active: np.ndarray | None = None
-
-    def active_rows(self, n: int) -> np.ndarray:
-        """The boolean mask of the ``n`` rows still running."""
-        return np.ones(n, dtype=bool) if self.active is None else self.active
-
-    def begin(self, envs: list[Simulator], obs: np.ndarray, episodes: list[int]) -> None:
-        """Called once per batch after reset."""
-
-    def act(self, envs: list[Simulator], obs: np.ndarray, t: int) -> np.ndarray:
-        raise NotImplementedError
-
-
 class RandomController(Controller):
     """Uniform random actions in [-1, 1] (the R_min reference)."""
 
@@ -89,22 +68,6 @@ class ExpertController(Controller):
 
     def act(self, envs, obs, t):
         return np.stack([env.expert_action(o) for env, o in zip(envs, obs, strict=True)])
-
-
-@dataclass
-class EpisodeBatchResult:
-    """Per-episode outcomes of an evaluation run."""
-
-    episodes: list[int] = field(default_factory=list)
-    returns: list[float] = field(default_factory=list)
-    final_success: list[bool] = field(default_factory=list)
-    first_goal_step: list[int] = field(default_factory=list)
-    starts: list[np.ndarray] = field(default_factory=list)
-    goals: list[np.ndarray] = field(default_factory=list)
-    executed: list[np.ndarray] = field(default_factory=list)
-    plans: list[np.ndarray | None] = field(default_factory=list)
-    lengths: list[int] = field(default_factory=list)
-    terminated: list[bool] = field(default_factory=list)
 
 
 def run_episodes(

@@ -9,10 +9,10 @@ import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import ModelBundle
+from adaptdiffuser.contract import Controller
 from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, Objective, ValueGuidance
 from adaptdiffuser.diffusion.noise import RowNoise
 from adaptdiffuser.diffusion.samplers import Sampler
-from adaptdiffuser.evaluation import Controller
 from adaptdiffuser.models.compiled import compile_network
 from adaptdiffuser.seeding import derive_seed
 

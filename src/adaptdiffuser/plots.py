@@ -14,7 +14,7 @@ import numpy as np  # noqa: E402
 from adaptdiffuser.io import atomic_path  # noqa: E402
 
 if TYPE_CHECKING:
-    from adaptdiffuser.evolution.discriminator import Judgement
+    from adaptdiffuser.contract import Judgement
 
 
 def save_plan_picture(
@@ -106,34 +106,6 @@ def save_score_by_phase(
     ax.set_xticks(phases)
     ax.set_xlabel("phase (0 = Diffuser)")
     ax.set_ylabel("normalized score")
-    save_figure(fig, path)
-
-
-def save_coin_picture(
-    env: Any,
-    path: str | Path,
-    plain_plan: np.ndarray,
-    coin_plan: np.ndarray,
-    executed: np.ndarray,
-    coin: np.ndarray,
-    radius: float,
-    title: str,
-) -> None:
-    """One PNG, two panels like the paper's gold-coin figure: the plan without the coin, and the guided plan
-    toward the coin with its execution (``env`` draws the task as for :func:`save_plan_picture`)."""
-    from matplotlib.patches import Circle
-
-    fig, (left, right) = plt.subplots(1, 2, figsize=(7, 3.6))
-    env.draw(left, plan=plain_plan, executed=None)
-    left.plot(*plain_plan[0, :2], "o", color="tab:green", ms=8, label="start")
-    left.set_title("without coin", fontsize=9)
-    env.draw(right, plan=coin_plan, executed=executed)
-    right.set_title("with coin guidance", fontsize=9)
-    for ax in (left, right):
-        ax.add_patch(Circle(tuple(coin[:2]), radius, color="gold", alpha=0.5))
-        ax.plot(*coin[:2], "*", color="darkgoldenrod", ms=14, label="coin")
-        ax.legend(loc="lower right", fontsize=6)
-    fig.suptitle(title, fontsize=9)
     save_figure(fig, path)
 
 

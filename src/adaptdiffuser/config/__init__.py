@@ -13,9 +13,10 @@ space), ``params`` (the whole file and its cross-section checks), ``loader`` (YA
 from adaptdiffuser.config.describe import describe, stage_names
 from adaptdiffuser.config.errors import ConfigError
 from adaptdiffuser.config.loader import load_params, params_from_dict
+from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.params import Params, check_cross_fields
 from adaptdiffuser.config.phases import PhaseParams
-from adaptdiffuser.config.profiles import apply_profile, deep_merge
+from adaptdiffuser.config.profiles import apply_profile
 from adaptdiffuser.config.sections import (
     SELECTION_RULES,
     CompileParams,

@@ -7,8 +7,9 @@ from adaptdiffuser.config.tasks import TaskParams
 
 
 def stage_names(params: Params) -> list[str]:
-    """The pipeline's stages in order, as ``dvc.yaml`` names them (``pretrain@hopper-medium``, ``generate@phase1``)."""
-    names = []
+    """The pipeline's stages in order, as ``dvc.yaml`` names them (``pretrain@hopper-medium``, ``generate@phase1``).
+    Each entry of ``task`` has a ``code@<task>`` stage: the fingerprint of the code its stages run."""
+    names = [f"code@{task}" for task in params.task]
     for task in params.tasks:
         data = f"import-data@{task}" if task in params.imports else f"collect@{task}"
         names += [data, f"reference@{task}", f"pretrain@{task}"]
@@ -36,6 +37,7 @@ def describe(params: Params) -> list[str]:
         + "".join(f", {ph.name} <- phase{ph.previous}" for ph in p.phases),
         "stages:",
     ]
+    lines += [f"  code@{name}: the fingerprint of the core and family {p.task[name].family}" for name in p.task]
     for name in p.tasks:
         t = p.resolve(name)
         src = p.imports.get(name)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import typing
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -16,10 +18,33 @@ from adaptdiffuser.config.sweep import check_space
 __all__ = ["ConfigError", "load_params", "params_from_dict"]
 
 _PARAMS = TypeAdapter(Params)
+#: top-level keys a params file may leave out: they have a meaning when absent (no imports; collect every task that
+#: is not imported). Every other key of the generic sections must be written: a run uses only what the file says.
+OPTIONAL_KEYS = ("imports", "collect_tasks")
+#: keys whose entries are not sections with fixed keys (task entries are checked by their family's model)
+OPEN_KEYS = ("task", "phases", "sweep.space")
+
+
+def missing_keys(raw: Mapping[str, Any], cls: type = Params, prefix: str = "") -> list[str]:
+    """The keys of the generic sections (``Params`` and its nested sections) that ``raw`` does not write."""
+    hints = typing.get_type_hints(cls)
+    missing: list[str] = []
+    for field in dataclasses.fields(cls):
+        key = f"{prefix}{field.name}"
+        if key in OPTIONAL_KEYS:
+            continue
+        if field.name not in raw:
+            missing.append(key)
+            continue
+        value, kind = raw[field.name], hints[field.name]
+        if key not in OPEN_KEYS and dataclasses.is_dataclass(kind) and isinstance(value, Mapping):
+            missing += missing_keys(value, kind, f"{key}.")
+    return missing
 
 
 def load_params(path: str | Path = "params.yaml") -> Params:
-    """Load and validate ``params.yaml``; raise :class:`ConfigError` naming the first bad key."""
+    """Load and validate ``params.yaml``; raise :class:`ConfigError` naming the first bad key, or the keys of the
+    generic sections it leaves out (:func:`missing_keys`)."""
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"params file not found: {path}")
@@ -31,7 +56,15 @@ def load_params(path: str | Path = "params.yaml") -> Params:
         raise ConfigError(f"{path}: not valid YAML{line}: {getattr(err, 'problem', None) or err}") from None
     if not isinstance(raw, dict):
         raise ConfigError(f"{path}: top level must be a mapping of sections")
-    return params_from_dict(raw)
+    params = params_from_dict(raw)  # a bad value is named first
+    missing = missing_keys(raw)
+    if missing:
+        shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
+        raise ConfigError(
+            f"{path}: missing {shown}; a run uses only the values its params file writes: start from a profile "
+            "(adaptdiffuser profile quick) and change what you need"
+        )
+    return params
 
 
 def params_from_dict(raw: Mapping[str, Any]) -> Params:

@@ -17,7 +17,7 @@ from pydantic.dataclasses import dataclass
 
 from adaptdiffuser.config.errors import ConfigError, config_error, show
 from adaptdiffuser.config.fields import NonNegativeInt, Str
-from adaptdiffuser.config.profiles import deep_merge
+from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.sections import (
     SECTION,
     DiscriminateParams,

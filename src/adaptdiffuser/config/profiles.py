@@ -7,24 +7,13 @@ from pathlib import Path
 import yaml
 
 from adaptdiffuser.config.errors import ConfigError
+from adaptdiffuser.config.loader import load_params
+from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.io import atomic_path
-
-
-def deep_merge(base: dict, overlay: dict) -> dict:
-    """``base`` with ``overlay`` merged in, recursively for nested mappings; an empty mapping in ``overlay``
-    replaces the base one (``phases: {}`` in a profile means no phases)."""
-    merged = dict(base)
-    for key, value in overlay.items():
-        if isinstance(value, dict) and value and isinstance(merged.get(key), dict):
-            merged[key] = deep_merge(merged[key], value)
-        else:
-            merged[key] = value
-    return merged
 
 
 def apply_profile(profile: str, profiles_dir: str | Path = "profiles", params_path: str | Path = "params.yaml") -> Path:
     """Write ``params.yaml`` as the quick profile overlaid with ``profiles/<profile>.yaml``; validate first."""
-    from adaptdiffuser.config.loader import load_params  # the loader imports this module (deep_merge)
 
     profiles_dir = Path(profiles_dir)
     base_path = profiles_dir / "quick.yaml"

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 from pydantic import TypeAdapter, ValidationError
 
 from adaptdiffuser.config.errors import ConfigError, config_error, show
-from adaptdiffuser.config.profiles import deep_merge
+from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.sections import (
     DiffusionParams,
     EvaluateParams,
@@ -72,7 +72,7 @@ def _plain(value: Any) -> Any:
 def build_task(name: str, entry: Any, generic: Mapping[str, Any]) -> TaskParams:
     """Validate ``task.<name>``: the family's model for its own keys, the generic overrides merged over
     ``generic`` (the validated top-level sections)."""
-    from adaptdiffuser.families.registry import FAMILIES, task_params_model
+    from adaptdiffuser.family_registry import FAMILIES, task_params_model
 
     where = f"task.{name}"
     if not TASK_NAME.fullmatch(str(name)):

@@ -1,7 +1,7 @@
 """External offline data as plain arrays, and D4RL's HDF5 layout read into them.
 
 :class:`ExternalData` is what every importer yields and what a family turns into its task's
-:class:`~adaptdiffuser.data.schema.Trajectories` (:meth:`~adaptdiffuser.families.base.Family.from_external`): one
+:class:`~adaptdiffuser.data.schema.Trajectories` (:meth:`~adaptdiffuser.contract.Family.from_external`): one
 row per step, episodes one after the other, in the source's own coordinates and with its own field names kept where
 a family needs them (``parts``: the entries of a dict observation, such as Minari's ``desired_goal``).
 

@@ -4,7 +4,7 @@ simulator, reject plans the dynamics cannot follow, score the executed trajector
 What is kept is the *executed* trajectory (real states and actions), never the raw plan.
 
 The family supplies what depends on its tasks: the simulator (with the goal-task methods ``set_goal_state``,
-``reward`` and ``tracking_error`` beside :class:`~adaptdiffuser.families.base.Simulator`'s), the controller that
+``reward`` and ``tracking_error`` beside :class:`~adaptdiffuser.contract.Simulator`'s), the controller that
 follows a plan's states (a :data:`FollowerFactory`), any :class:`SelectionRule` beyond the generic ``quantile``
 and ``top_k`` ones, and the check of coin tasks (a :data:`CoinCheck`).
 """
@@ -19,32 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from adaptdiffuser.config import DiscriminateParams
-
-
-@dataclass
-class TrackedTrajectory:
-    """A plan executed by the tracking controller: real observations ``[H, obs]`` and the actions taken in each
-    of them ``[H, act]`` (the last one is the follower's action past the plan's end, so the trajectory fills a
-    training window of length H), the tracking error of each step ``[H - 1]``,
-    the protocol reward of each executed state ``[H]`` (as in the expert data) and the first step at the goal."""
-
-    observations: np.ndarray
-    actions: np.ndarray
-    errors: np.ndarray
-    rewards: np.ndarray
-    steps_to_goal: int
-
-    @property
-    def max_error(self) -> float:
-        return float(self.errors.max()) if len(self.errors) else 0.0
-
-    @property
-    def mean_error(self) -> float:
-        return float(self.errors.mean()) if len(self.errors) else 0.0
-
-    @property
-    def total_reward(self) -> float:
-        return float(self.rewards.sum())
+from adaptdiffuser.contract import Judgement, TrackedTrajectory
 
 
 class PlanFollowing(Protocol):
@@ -169,37 +144,6 @@ def generic_selection_rule(cfg: DiscriminateParams) -> SelectionRule:
     if cfg.rule == "top_k":
         return TopKRule(cfg.top_k)
     raise ValueError(f"the selection rule {cfg.rule!r} is not a generic one (quantile, top_k); the family gives it")
-
-
-@dataclass
-class Judgement:
-    """The discriminator's verdict on generated plans: the trajectories it judged (executed, or planned when
-    tracking is off), which passed tracking, and the indices kept, best first where the rule ranks."""
-
-    trajectories: list[TrackedTrajectory]
-    passed_tracking: np.ndarray
-    kept: np.ndarray
-    coin_tasks: np.ndarray | None = None
-
-    def report(self) -> dict[str, float | int]:
-        """Counts and distributions for the stage report and ``metrics/summary.json``."""
-        n = len(self.trajectories)
-        passed = int(self.passed_tracking.sum())
-        mean_errors = np.array([t.mean_error for t in self.trajectories])
-        returns = np.array([t.total_reward for t in self.trajectories])
-        coin = self.coin_tasks if self.coin_tasks is not None else np.zeros(n, dtype=bool)
-        return {
-            "generated": n,
-            "rejected_tracking": n - passed,
-            "rejected_reward": passed - len(self.kept),
-            "kept": len(self.kept),
-            "kept_fraction": len(self.kept) / n if n else 0.0,
-            "tracking_error_mean": float(mean_errors.mean()) if n else 0.0,
-            "return_mean": float(returns.mean()) if n else 0.0,
-            "return_mean_kept": float(returns[self.kept].mean()) if len(self.kept) else 0.0,
-            "coin_generated": int(coin.sum()),
-            "coin_kept": int(coin[self.kept].sum()),
-        }
 
 
 def select(trajectories: list[TrackedTrajectory], candidates: np.ndarray, rule: SelectionRule) -> np.ndarray:

@@ -11,9 +11,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from adaptdiffuser.contract import TrackedTrajectory
 from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
 from adaptdiffuser.diffusion.guidance import CoinObjective
-from adaptdiffuser.evolution.discriminator import TrackedTrajectory
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 

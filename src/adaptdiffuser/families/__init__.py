@@ -1,1 +1,2 @@
-"""Benchmark families: one folder each behind the interfaces of ``base``, registered in ``registry``."""
+"""Benchmark families: one folder each behind the interfaces of :mod:`adaptdiffuser.contract`, registered in
+:mod:`adaptdiffuser.family_registry`."""

@@ -7,12 +7,13 @@ from pathlib import Path
 import mlflow
 
 from adaptdiffuser.config import Params
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.schema import write_trajectories
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import write_json
-from adaptdiffuser.stages.common import collect_dir, dataset_path, file_digest
-from adaptdiffuser.tracking import log_params, stage_run
+from adaptdiffuser.layout import collect_dir, dataset_path
+from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.tooling.mlflow_logging import log_params, stage_run
 
 
 def run_collect(params: Params, task_name: str, root: Path, progress: bool = True) -> Path:

@@ -1,4 +1,4 @@
-"""Path conventions and helpers shared by the stages."""
+"""Helpers shared by the stages (paths: :mod:`adaptdiffuser.layout`)."""
 
 from __future__ import annotations
 
@@ -7,105 +7,6 @@ from pathlib import Path
 
 import torch
 
-SUMMARY = Path("metrics/summary.json")
-
-# Every output of a task lives under its name: data/<task>/, models/<task>/, results/<task>/, plots/<task>/ and
-# metrics/tasks/<task>/ (the summarize stage reads metrics/tasks); the report writes metrics/report/<task>/.
-# What training produces, and what is made from it, has one folder (or file) per training seed, seed<s>, inside
-# the phase's; the metrics files of a phase hold every seed's metrics and their aggregate.
-
-
-def dataset_path(task: str) -> Path:
-    """The task's offline training data (expert demonstrations or a behaviour-policy dataset)."""
-    return Path(f"data/{task}/dataset.parquet")
-
-
-def reference_path(task: str) -> Path:
-    """What 0 and 100 of the task's normalized score mean (written by its reference stage)."""
-    return Path(f"metrics/tasks/{task}/reference.json")
-
-
-def phase_name(phase: int, control: bool = False) -> str:
-    """``phase<k>``, or ``phase<k>-control`` for the equal-compute control of evolution phase k (phase k-1's model
-    trained the same steps on expert data only)."""
-    return f"phase{phase}-control" if control else f"phase{phase}"
-
-
-def seed_name(seed: int) -> str:
-    """``seed<s>``: the folder of training seed ``s`` inside a phase's models, results and pictures."""
-    return f"seed{seed}"
-
-
-def phase_models_dir(task: str, phase: int, control: bool = False) -> Path:
-    """Every training seed's model of a phase (the output of its training stage)."""
-    return Path(f"models/{task}/{phase_name(phase, control)}")
-
-
-def model_dir(task: str, phase: int, seed: int, control: bool = False) -> Path:
-    """The model of a phase (or of its control) for one training seed."""
-    return phase_models_dir(task, phase, control) / seed_name(seed)
-
-
-def value_dir(task: str, seed: int) -> Path:
-    """The task's learned value function for a training seed, beside its phase-0 model (written by pretrain)."""
-    return model_dir(task, 0, seed) / "value"
-
-
-def collect_dir(task: str) -> Path:
-    """The collect stage's summary and the family's own collection outputs, such as behaviour policies."""
-    return Path(f"models/{task}/collect")
-
-
-def results_dir(task: str, phase: int, seed: int, control: bool = False) -> Path:
-    return Path(f"results/{task}/{phase_name(phase, control)}/{seed_name(seed)}")
-
-
-def plots_dir(task: str, phase: int, seed: int, control: bool = False) -> Path:
-    return Path(f"plots/{task}/{phase_name(phase, control)}/{seed_name(seed)}")
-
-
-def phase_metrics_path(task: str, phase: int, control: bool = False) -> Path:
-    """Evaluation metrics of a phase or of its control over every training seed (written by its evaluate /
-    evaluate-control stage; each seed's own under ``seeds``)."""
-    return Path(f"metrics/tasks/{task}/{phase_name(phase, control)}.json")
-
-
-def discriminator_metrics_path(task: str, phase: int) -> Path:
-    """The discriminator report of an evolution phase over every training seed (written by its discriminate
-    stage)."""
-    return Path(f"metrics/tasks/{task}/phase{phase}-discriminator.json")
-
-
-def coin_metrics_path(task: str, phase: int) -> Path:
-    """Gold-coin metrics of a phase over every training seed (written by its evaluate-coin stage)."""
-    return Path(f"metrics/tasks/{task}/phase{phase}-coin.json")
-
-
-def coin_plots_dir(task: str, phase: int, seed: int) -> Path:
-    return Path(f"plots/{task}/coin/phase{phase}/{seed_name(seed)}")
-
-
-def generated_path(task: str, phase: int, seed: int) -> Path:
-    """Phase k's generated trajectories for one training seed (from that seed's phase k-1 model)."""
-    return Path(f"data/{task}/phase{phase}/generated/{seed_name(seed)}.parquet")
-
-
-def selected_path(task: str, phase: int, seed: int) -> Path:
-    """What the discriminator kept of :func:`generated_path` (trains that seed's phase k model)."""
-    return Path(f"data/{task}/phase{phase}/selected/{seed_name(seed)}.parquet")
-
-
-def discriminator_plot_path(task: str, phase: int, seed: int) -> Path:
-    return Path(f"plots/{task}/discriminator/phase{phase}/{seed_name(seed)}.png")
-
-
-def score_table_path(task: str) -> Path:
-    return Path(f"metrics/report/{task}/score_by_phase.csv")
-
-
-def report_plot_path(task: str) -> Path:
-    return Path(f"plots/report/{task}/score_by_phase.png")
-
 
 def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str, phase: int, root: Path) -> dict:
     """A stage's metrics of every training seed as one file (``root / path``; see
@@ -113,7 +14,7 @@ def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str
     returns the aggregate."""
     from adaptdiffuser.io import write_json
     from adaptdiffuser.seed_metrics import over_seeds
-    from adaptdiffuser.tracking import log_over_seeds
+    from adaptdiffuser.tooling.mlflow_logging import log_over_seeds
 
     metrics = over_seeds(per_seed)
     write_json(root / path, metrics)

@@ -9,20 +9,14 @@ from pathlib import Path
 import mlflow
 
 from adaptdiffuser.config import Params
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.schema import Trajectories, read_trajectories, write_trajectories
 from adaptdiffuser.data.windows import take_episodes
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.layout import discriminator_metrics_path, discriminator_plot_path, generated_path, selected_path
 from adaptdiffuser.plots import save_discriminator_histograms
-from adaptdiffuser.stages.common import (
-    discriminator_metrics_path,
-    discriminator_plot_path,
-    file_digest,
-    generated_path,
-    save_over_seeds,
-    selected_path,
-)
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.stages.common import file_digest, save_over_seeds
+from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 
 def run_discriminate(params: Params, task_name: str, root: Path, phase: int, progress: bool = True) -> dict:

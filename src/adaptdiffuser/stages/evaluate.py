@@ -13,23 +13,16 @@ import torch
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, summarize
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import atomic_path, read_json
+from adaptdiffuser.layout import model_dir, phase_metrics_path, phase_name, plots_dir, reference_path, results_dir
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.stages.common import (
-    model_dir,
-    phase_metrics_path,
-    phase_name,
-    plots_dir,
-    reference_path,
-    results_dir,
-    save_over_seeds,
-)
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.stages.common import save_over_seeds
+from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 
 def run_evaluate(

@@ -1,32 +1,21 @@
-"""Stage ``evaluate-coin``: a phase's planner on the unseen gold-coin task, guided toward the coin by ``alpha``."""
+"""Stage ``evaluate-coin``: a phase's planner on its family's unseen task (Maze2D: the gold coin), guided by alpha."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import mlflow
-import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import Params
-from adaptdiffuser.diffusion.guidance import CoinObjective
+from adaptdiffuser.config import ConfigError, Params
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.evaluation import normalized_score, run_episodes
-from adaptdiffuser.families.maze2d.execution import PlannerController
-from adaptdiffuser.families.maze2d.gold_coin import coin_cases, coin_outcome, summarize_coin
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import read_json, write_json
+from adaptdiffuser.layout import coin_metrics_path, coin_plots_dir, model_dir, reference_path
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.plots import save_coin_picture
-from adaptdiffuser.stages.common import (
-    coin_metrics_path,
-    coin_plots_dir,
-    model_dir,
-    reference_path,
-    save_over_seeds,
-)
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.stages.common import save_over_seeds
+from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 
 def run_evaluate_coin(
@@ -41,12 +30,13 @@ def run_evaluate_coin(
         (root / coin_plots_dir(task.name, phase, 0)).parent.mkdir(parents=True, exist_ok=True)  # the stage's output
         return skipped
     ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
+    unseen = get_family(task.family).unseen_task
     per_seed = {
-        seed: {"gold_coin": evaluate_coin_seed(params, task.name, root, phase, device, seed, ref, progress)}
+        seed: {unseen: evaluate_coin_seed(params, task.name, root, phase, device, seed, ref, progress)}
         for seed in params.seeds
     }
     metrics = save_over_seeds(per_seed, coin_metrics_path(task.name, phase), task.name, "evaluate-coin", phase, root)
-    return metrics["gold_coin"]
+    return metrics[unseen]
 
 
 def evaluate_coin_seed(
@@ -59,66 +49,28 @@ def evaluate_coin_seed(
     ref: dict,
     progress: bool = True,
 ) -> dict:
-    """Plan each fixed coin case once with training seed ``seed``'s model of the phase, guided toward its coin with
-    scale ``alpha``, follow the plan for a whole episode, and score pick / goal / both rates, plan collisions and
-    the navigation score."""
+    """Training seed ``seed``'s model of the phase on the family's unseen task (``Family.evaluate_unseen``),
+    guided by ``alpha``; its metrics are logged to MLflow with its pictures."""
     task = params.resolve(task_name)
     family = get_family(task.family)
+    unseen = family.unseen_task
+    if unseen is None:
+        raise ConfigError(f"coin_tasks: {task.name} is of family {task.family}, which has no unseen task")
     bundle = load_bundle(root / model_dir(task.name, phase, seed), device)
-    gc, pl = task.settings.gold_coin, task.planner
+    pl = task.planner
     logged = {
-        "gold_coin": task.section("gold_coin"),
+        unseen: task.section(unseen),
         "alpha": params.alpha,
         "planner": task.section("planner"),
         "compile": {"sampling": params.compile.sampling},
         "seed": seed,
     }
     with stage_run(task.name, "evaluate-coin", phase, logged, root, seed=seed):
-        env = family.make_simulator(task)
-        cases = coin_cases(env, gc.cases_per_kind, np.random.default_rng(gc.seed))
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device, params.compile.sampling)
-        coins = torch.as_tensor(cases.coins, dtype=torch.float32, device=device)
-
-        def guidance_for(episodes: list[int]):
-            return planner.guidance(CoinObjective(coins[episodes]), params.alpha)
-
-        controller = PlannerController(planner, gc.seed, pl.replan_every, guidance_for=guidance_for)
-        result = run_episodes(
-            lambda: family.make_simulator(task),
-            controller,
-            len(cases),
-            gc.seed,
-            gc.batch_size,
-            desc=f"gold coin phase {phase} seed {seed}",
-            progress=progress,
-            reset=lambda e, i: e.set_state(cases.starts[i]),
-        )
-        outcomes = [
-            coin_outcome(env, executed, coin, gc.radius, plan)
-            for executed, coin, plan in zip(result.executed, cases.coins, result.plans, strict=True)
-        ]
-        scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
-        gold = summarize_coin(outcomes, cases.kinds, scores)
-        mlflow.log_metrics({f"gold_coin.{k}": float(v) for k, v in gold.items()})
         pictures = root / coin_plots_dir(task.name, phase, seed)
-        goals = np.stack([env.goal_state()] * len(cases))
-        picked = list(range(min(gc.pictures, len(cases))))
-        if picked:
-            # the unguided plans on the same noise as the guided first plans (each case's seed at t = 0)
-            seeds = controller.seeds(picked, 0)
-            plain = planner.plan(cases.starts[picked], goals[picked], seeds)[:, :, planner.act_dim :]
-        for i in picked:
-            picture = pictures / f"coin_{i:02d}.png"
-            verdict = "picked + goal" if outcomes[i].both else ("picked" if outcomes[i].picked else "missed")
-            save_coin_picture(
-                env,
-                picture,
-                plain[i],
-                result.plans[i],
-                result.executed[i],
-                cases.coins[i],
-                gc.radius,
-                f"phase {phase} seed {seed}, {cases.kinds[i]} coin, alpha {params.alpha:g}: {verdict}",
-            )
-            mlflow.log_artifact(str(picture), artifact_path="gold_coin")
-    return gold
+        title = f"phase {phase} seed {seed}"
+        metrics = family.evaluate_unseen(task, planner, params.alpha, ref, pictures, title, progress)
+        mlflow.log_metrics({f"{unseen}.{k}": float(v) for k, v in metrics.items()})
+        for picture in sorted(pictures.glob("*.png")):
+            mlflow.log_artifact(str(picture), artifact_path=unseen)
+    return metrics

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from adaptdiffuser.config import Params
 from adaptdiffuser.data.schema import read_trajectories
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 
 
 def run_export_minari(

@@ -15,18 +15,12 @@ from adaptdiffuser.config import Params, PretrainParams, TaskParams
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
 from adaptdiffuser.io import atomic_dir
+from adaptdiffuser.layout import model_dir, phase_models_dir, phase_name, seed_name, selected_path
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed, training_seed
-from adaptdiffuser.stages.common import (
-    file_digest,
-    model_dir,
-    phase_models_dir,
-    phase_name,
-    seed_name,
-    selected_path,
-)
-from adaptdiffuser.stages.pretrain import expert_training_data
-from adaptdiffuser.tracking import log_dataset, log_model, stage_run
+from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.stages.training_data import expert_training_data
+from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run
 from adaptdiffuser.training import carried_optimizer, fingerprint, train
 
 

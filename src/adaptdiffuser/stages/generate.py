@@ -10,14 +10,14 @@ import torch
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.schema import write_trajectories
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.layout import generated_path, model_dir
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed, training_seed
-from adaptdiffuser.stages.common import generated_path, model_dir
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 
 def run_generate(

@@ -12,10 +12,11 @@ import mlflow
 from adaptdiffuser.config import ConfigError, Params
 from adaptdiffuser.data.d4rl import ExternalData, read_d4rl
 from adaptdiffuser.data.schema import write_trajectories
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import write_json
-from adaptdiffuser.stages.common import collect_dir, dataset_path, file_digest
-from adaptdiffuser.tracking import log_params, stage_run
+from adaptdiffuser.layout import collect_dir, dataset_path
+from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.tooling.mlflow_logging import log_params, stage_run
 
 #: what the import writes into the task's collect folder (in place of the collect stage's ``collect.json``)
 IMPORT_SUMMARY = "import.json"

@@ -2,39 +2,23 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, replace
+from dataclasses import asdict
 from pathlib import Path
 
 import mlflow
-import numpy as np
 import torch
 
 from adaptdiffuser.checkpoint import make_bundle, save_bundle
-from adaptdiffuser.config import Params, PretrainParams, TaskParams
+from adaptdiffuser.config import Params
 from adaptdiffuser.data.normalizer import fit_normalizer
-from adaptdiffuser.data.schema import Trajectories, read_trajectories
-from adaptdiffuser.data.windows import WindowDataset, joint_array, subset_episodes
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.data.windows import WindowDataset, joint_array
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.layout import model_dir, phase_models_dir, seed_name
 from adaptdiffuser.plots import save_loss_curve
-from adaptdiffuser.seeding import training_seed
-from adaptdiffuser.stages.common import dataset_path, file_digest, model_dir, phase_models_dir, seed_name
-from adaptdiffuser.tracking import log_dataset, log_model, stage_run
+from adaptdiffuser.stages.training_data import expert_training_data, pretrain_config
+from adaptdiffuser.stages.value import run_value
+from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run
 from adaptdiffuser.training import fingerprint, train
-
-
-def pretrain_config(task: TaskParams, seed: int) -> PretrainParams:
-    """Pretraining's settings for training seed ``seed`` (its seed derived from ``pretrain.seed`` and ``seed``)."""
-    return replace(task.pretrain, seed=training_seed(task.pretrain.seed, seed))
-
-
-def expert_training_data(task: TaskParams, root: Path, seed: int) -> tuple[Trajectories, dict[str, str | float]]:
-    """The dataset episodes the models of training seed ``seed`` train on (``pretrain.expert_fraction`` of them,
-    chosen with that seed's pretraining seed, so every phase sees the same subset) and how to name them in logs."""
-    data_path = root / dataset_path(task.name)
-    traj = read_trajectories(data_path, env=task.name)
-    fraction = task.pretrain.expert_fraction
-    subset = subset_episodes(traj, fraction, np.random.default_rng(pretrain_config(task, seed).seed))
-    return subset, {"path": str(dataset_path(task.name)), "sha256": file_digest(data_path), "fraction": fraction}
 
 
 def run_pretrain(params: Params, task_name: str, root: Path, device: torch.device, progress: bool = True) -> Path:
@@ -111,7 +95,5 @@ def pretrain_seed(
         log_model(bundle.ema, out, task.name, "phase0", seed, seed == params.seeds[0], {"stage": "pretrain"})
         resume.unlink(missing_ok=True)
     if family.uses_value_function:
-        from adaptdiffuser.stages.value import run_value
-
         run_value(params, task.name, root, device, seed, progress=progress)
     return out

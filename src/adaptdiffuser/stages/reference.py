@@ -7,12 +7,12 @@ from pathlib import Path
 import mlflow
 
 from adaptdiffuser.config import Params
+from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.errors import StageError
-from adaptdiffuser.families.base import TaskFiles
-from adaptdiffuser.families.registry import get_family
+from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import write_json
-from adaptdiffuser.stages.common import reference_path
-from adaptdiffuser.tracking import flatten, stage_run
+from adaptdiffuser.layout import reference_path
+from adaptdiffuser.tooling.mlflow_logging import flatten, stage_run
 
 
 def run_reference(params: Params, task_name: str, root: Path, progress: bool = True) -> dict:

@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from adaptdiffuser.io import atomic_path, read_json
+from adaptdiffuser.layout import SUMMARY, report_plot_path, score_table_path
 from adaptdiffuser.plots import save_score_by_phase
-from adaptdiffuser.stages.common import SUMMARY, phase_entries, report_plot_path, score_table_path
+from adaptdiffuser.stages.common import phase_entries
 
 TABLE_COLUMNS = (
     "phase",

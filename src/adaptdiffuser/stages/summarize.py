@@ -8,15 +8,15 @@ import mlflow
 
 from adaptdiffuser.config import Params
 from adaptdiffuser.io import read_json, write_json
-from adaptdiffuser.stages.common import (
+from adaptdiffuser.layout import (
     SUMMARY,
     coin_metrics_path,
     discriminator_metrics_path,
-    phase_entries,
     phase_metrics_path,
     reference_path,
 )
-from adaptdiffuser.tracking import set_best_alias, stage_run
+from adaptdiffuser.stages.common import phase_entries
+from adaptdiffuser.tooling.mlflow_logging import set_best_alias, stage_run
 
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept")
 GAIN_KEYS = ("gain_mean", "gain_stderr")

@@ -14,12 +14,12 @@ from adaptdiffuser.config import Params
 from adaptdiffuser.data.returns import ValueWindowDataset
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import take_episodes
+from adaptdiffuser.layout import model_dir, value_dir
 from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed, training_seed
-from adaptdiffuser.stages.common import model_dir, value_dir
-from adaptdiffuser.stages.pretrain import expert_training_data
-from adaptdiffuser.tracking import stage_run
+from adaptdiffuser.stages.training_data import expert_training_data
+from adaptdiffuser.tooling.mlflow_logging import stage_run
 from adaptdiffuser.value_training import heldout_r2, save_value, train_value
 
 #: windows of the held-out episodes the value's R^2 is measured on

@@ -8,7 +8,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from adaptdiffuser.evaluation import Controller
+from adaptdiffuser.contract import Controller
 from adaptdiffuser.families.kuka.scene import BLOCK_HALF, N_BLOCKS, N_JOINTS, KukaScene
 from adaptdiffuser.families.kuka.tasks import block_positions
 

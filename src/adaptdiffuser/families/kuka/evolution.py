@@ -16,16 +16,10 @@ import numpy as np
 from tqdm import tqdm
 
 from adaptdiffuser.config import DiscriminateParams, GenerateParams, TaskParams
+from adaptdiffuser.contract import Judgement, TrackedTrajectory
 from adaptdiffuser.data.schema import SchemaError, Trajectories
 from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.evolution.discriminator import (
-    Judgement,
-    SelectionRule,
-    TrackedTrajectory,
-    generic_selection_rule,
-    passes_tracking,
-    select,
-)
+from adaptdiffuser.evolution.discriminator import SelectionRule, generic_selection_rule, passes_tracking, select
 from adaptdiffuser.families.kuka.dataset import state_episodes
 from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance, plan_commands
 from adaptdiffuser.families.kuka.simulator import KukaSimulator

@@ -8,8 +8,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 import torch
 
+from adaptdiffuser.contract import Controller
 from adaptdiffuser.diffusion.guidance import GuidanceBase, Objective
-from adaptdiffuser.evaluation import Controller
 from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_BLOCKS, N_JOINTS, block_position_columns
 from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS
 from adaptdiffuser.seeding import derive_seed

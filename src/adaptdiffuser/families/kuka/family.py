@@ -1,4 +1,4 @@
-"""The KUKA family as the generic pipeline sees it (registered in ``families/registry.py``): the model learns block
+"""The KUKA family as the generic pipeline sees it (registered in ``family_registry.py``): the model learns block
 stacking from the scripted demonstrator's states; stacking is evaluated as the task's score and pick-and-place (the
 unseen task, guided) beside it."""
 
@@ -10,16 +10,9 @@ from typing import Any
 import numpy as np
 
 from adaptdiffuser.config import TaskParams
+from adaptdiffuser.contract import Controller, EpisodeBatchResult, Family, TaskFiles
 from adaptdiffuser.data.schema import Trajectories
-from adaptdiffuser.evaluation import (
-    Controller,
-    EpisodeBatchResult,
-    RandomController,
-    normalized_score,
-    run_episodes,
-    standard_error,
-)
-from adaptdiffuser.families.base import Family, TaskFiles
+from adaptdiffuser.evaluation import RandomController, normalized_score, run_episodes, standard_error
 from adaptdiffuser.families.kuka.scene import N_BLOCKS
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 

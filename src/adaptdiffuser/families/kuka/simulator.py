@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from adaptdiffuser.families.base import Simulator, Step
+from adaptdiffuser.contract import Simulator, Step
 from adaptdiffuser.families.kuka.scene import (
     FLAG_COLUMNS,
     HOME_JOINTS,

@@ -1,4 +1,4 @@
-"""The locomotion family as the generic pipeline sees it (registered in ``families/registry.py``)."""
+"""The locomotion family as the generic pipeline sees it (registered in ``family_registry.py``)."""
 
 from __future__ import annotations
 
@@ -9,9 +9,9 @@ from typing import Any
 import numpy as np
 
 from adaptdiffuser.config import TaskParams
+from adaptdiffuser.contract import Controller, EpisodeBatchResult, Family, TaskFiles
 from adaptdiffuser.data.schema import Trajectories, read_trajectories
-from adaptdiffuser.evaluation import Controller, EpisodeBatchResult, standard_error
-from adaptdiffuser.families.base import Family, TaskFiles
+from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.families.locomotion.params import parse_task_name
 from adaptdiffuser.families.locomotion.reference import REFERENCE_RETURNS, normalized_score, robot_of
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator

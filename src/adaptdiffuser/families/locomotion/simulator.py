@@ -1,5 +1,5 @@
 """One gymnasium MuJoCo locomotion env (Hopper, Walker2d, HalfCheetah ``-v5``) behind the family's
-:class:`~adaptdiffuser.families.base.Simulator` interface.
+:class:`~adaptdiffuser.contract.Simulator` interface.
 
 The env is used unwrapped (no ``TimeLimit``): the episode length (``episode_steps``) is the caller's business. The
 full state is ``qpos`` then ``qvel`` (float64), from which the reward and the termination can be recomputed exactly
@@ -19,7 +19,7 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from adaptdiffuser.families.base import Simulator, Step
+from adaptdiffuser.contract import Simulator, Step
 from adaptdiffuser.families.locomotion.params import DATASET_KINDS, ENV_IDS, parse_task_name
 
 __all__ = ["DATASET_KINDS", "ENV_IDS", "LocomotionSimulator", "env_id_of", "parse_task_name"]

@@ -16,14 +16,9 @@ from typing import Any
 import numpy as np
 
 from adaptdiffuser.config import DiscriminateParams, GenerateParams, TaskParams
+from adaptdiffuser.contract import Judgement, TrackedTrajectory
 from adaptdiffuser.data.schema import Trajectories
-from adaptdiffuser.evolution.discriminator import (
-    Judgement,
-    SelectionRule,
-    TrackedTrajectory,
-    discriminate,
-    planned_trajectory,
-)
+from adaptdiffuser.evolution.discriminator import SelectionRule, discriminate, planned_trajectory
 from adaptdiffuser.evolution.generate import (
     NavigationTasks,
     generate_plans,
@@ -98,7 +93,7 @@ def generate_rollout_data(
     """One closed-loop rollout per task in fresh simulators like ``env`` (replanning every
     ``evolution.replan_every`` steps, ending at the goal or after the episode length): the executed states, actions
     and rewards, unpadded, with the task columns and each step's tracking error (column ``tracking_error``)."""
-    from adaptdiffuser.families.registry import get_family
+    from adaptdiffuser.family_registry import get_family
 
     family = get_family(task.family)
     rollouts = run_rollouts(

@@ -7,8 +7,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from adaptdiffuser.contract import Controller
 from adaptdiffuser.diffusion.guidance import Guidance
-from adaptdiffuser.evaluation import Controller
 from adaptdiffuser.families.maze2d.simulator import PlanningEnv
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed

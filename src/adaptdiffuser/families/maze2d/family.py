@@ -1,4 +1,4 @@
-"""The Maze2D family as the generic pipeline sees it (registered in ``families/registry.py``)."""
+"""The Maze2D family as the generic pipeline sees it (registered in ``family_registry.py``)."""
 
 from __future__ import annotations
 
@@ -9,16 +9,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from adaptdiffuser.config import DiscriminateParams, TaskParams
+from adaptdiffuser.contract import Controller, EpisodeBatchResult, Family, TaskFiles
 from adaptdiffuser.data.schema import Trajectories, make_metadata
-from adaptdiffuser.evaluation import (
-    Controller,
-    EpisodeBatchResult,
-    ExpertController,
-    RandomController,
-    run_episodes,
-    standard_error,
-)
-from adaptdiffuser.families.base import Family, TaskFiles
+from adaptdiffuser.evaluation import ExpertController, RandomController, run_episodes, standard_error
 from adaptdiffuser.families.maze2d.expert import collect_expert_stream
 from adaptdiffuser.families.maze2d.simulator import Maze2D, resolve_layout
 from adaptdiffuser.plots import save_plan_picture
@@ -36,6 +29,7 @@ class Maze2DFamily(Family):
     name = "maze2d"
     conditioning = "start_goal"
     normalizer_kind = "minmax"
+    unseen_task = "gold_coin"
 
     def make_simulator(self, task: TaskParams) -> Maze2D:
         """A fresh simulator: protocol from ``env``, expert gains from ``expert``, plan-follower gains from
@@ -103,6 +97,13 @@ class Maze2DFamily(Family):
         from adaptdiffuser.families.maze2d.execution import PlannerController
 
         return PlannerController(planner, task.evaluate.seed, task.planner.replan_every)
+
+    def evaluate_unseen(self, task, planner, alpha, ref, pictures, title, progress):
+        """The gold-coin task (:func:`~adaptdiffuser.families.maze2d.gold_coin.evaluate_gold_coin`)."""
+        from adaptdiffuser.families.maze2d.gold_coin import evaluate_gold_coin
+
+        make_env = lambda: self.make_simulator(task)  # noqa: E731
+        return evaluate_gold_coin(make_env, task, planner, alpha, ref, pictures, title, progress)
 
     def selection_rule(self, task: TaskParams, cfg: DiscriminateParams) -> SelectionRule:
         """The discriminator's rule for the navigation tasks of ``task``'s evolution: under ``rule: paper`` the

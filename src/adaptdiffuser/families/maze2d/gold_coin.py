@@ -2,17 +2,26 @@
 
 No expert data ever contains a coin. Plans are steered to the coin by :class:`CoinObjective` guidance; a coin
 is picked when the executed position passes within ``radius`` of it, and the task is done when the goal is
-reached after the pick. This module holds the fixed evaluation cases and the scoring of executed episodes.
+reached after the pick. This module holds the fixed evaluation cases, the scoring of executed episodes and the
+evaluation of a planner on the task (the family's unseen-task evaluation).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import numpy as np
+import torch
 
-from adaptdiffuser.evaluation import standard_error
+from adaptdiffuser.diffusion.guidance import CoinObjective
+from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
+from adaptdiffuser.families.maze2d.execution import PlannerController
 from adaptdiffuser.families.maze2d.simulator import Cell, Maze2D, bfs_distances, shortest_path
+from adaptdiffuser.planning import Planner
+from adaptdiffuser.plots import save_figure
 
 #: where the coin lies relative to the shortest start -> goal path
 COIN_KINDS = ("on_path", "off_path", "behind_start")
@@ -139,3 +148,91 @@ def summarize_coin(outcomes: list[CoinOutcome], kinds: list[str], scores: np.nda
         if mask.any():
             summary[f"both_rate_{kind}"] = float(both[mask].mean())
     return summary
+
+
+def save_coin_picture(
+    env: Maze2D,
+    path: str | Path,
+    plain_plan: np.ndarray,
+    coin_plan: np.ndarray,
+    executed: np.ndarray,
+    coin: np.ndarray,
+    radius: float,
+    title: str,
+) -> None:
+    """One PNG, two panels like the paper's gold-coin figure: the plan without the coin, and the guided plan
+    toward the coin with its execution (``env`` draws the maze)."""
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    fig, (left, right) = plt.subplots(1, 2, figsize=(7, 3.6))
+    env.draw(left, plan=plain_plan, executed=None)
+    left.plot(*plain_plan[0, :2], "o", color="tab:green", ms=8, label="start")
+    left.set_title("without coin", fontsize=9)
+    env.draw(right, plan=coin_plan, executed=executed)
+    right.set_title("with coin guidance", fontsize=9)
+    for ax in (left, right):
+        ax.add_patch(Circle(tuple(coin[:2]), radius, color="gold", alpha=0.5))
+        ax.plot(*coin[:2], "*", color="darkgoldenrod", ms=14, label="coin")
+        ax.legend(loc="lower right", fontsize=6)
+    fig.suptitle(title, fontsize=9)
+    save_figure(fig, path)
+
+
+def evaluate_gold_coin(
+    make_env: Callable[[], Maze2D],
+    task: Any,
+    planner: Planner,
+    alpha: float,
+    ref: dict,
+    pictures: Path,
+    title: str,
+    progress: bool,
+) -> dict[str, float]:
+    """Plan each fixed coin case of ``task`` once, guided toward its coin with scale ``alpha``, follow the plan for a
+    whole episode, and score pick / goal / both rates, plan collisions and the navigation score (``ref``: the
+    task's score reference); the first ``gold_coin.pictures`` cases are drawn under ``pictures``."""
+    gc, replan_every = task.settings.gold_coin, task.planner.replan_every
+    env = make_env()
+    cases = coin_cases(env, gc.cases_per_kind, np.random.default_rng(gc.seed))
+    coins = torch.as_tensor(cases.coins, dtype=torch.float32, device=planner.device)
+
+    def guidance_for(episodes: list[int]):
+        return planner.guidance(CoinObjective(coins[episodes]), alpha)
+
+    controller = PlannerController(planner, gc.seed, replan_every, guidance_for=guidance_for)
+    result = run_episodes(
+        make_env,
+        controller,
+        len(cases),
+        gc.seed,
+        gc.batch_size,
+        desc=f"gold coin {title}",
+        progress=progress,
+        reset=lambda e, i: e.set_state(cases.starts[i]),
+    )
+    outcomes = [
+        coin_outcome(env, executed, coin, gc.radius, plan)
+        for executed, coin, plan in zip(result.executed, cases.coins, result.plans, strict=True)
+    ]
+    scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
+    gold = summarize_coin(outcomes, cases.kinds, scores)
+    goals = np.stack([env.goal_state()] * len(cases))
+    picked = list(range(min(gc.pictures, len(cases))))
+    if picked:
+        # the unguided plans on the same noise as the guided first plans (each case's seed at t = 0)
+        seeds = controller.seeds(picked, 0)
+        plain = planner.plan(cases.starts[picked], goals[picked], seeds)[:, :, planner.act_dim :]
+    for i in picked:
+        verdict = "picked + goal" if outcomes[i].both else ("picked" if outcomes[i].picked else "missed")
+        save_coin_picture(
+            env,
+            pictures / f"coin_{i:02d}.png",
+            plain[i],
+            result.plans[i],
+            result.executed[i],
+            cases.coins[i],
+            gc.radius,
+            f"{title}, {cases.kinds[i]} coin, alpha {alpha:g}: {verdict}",
+        )
+    return gold

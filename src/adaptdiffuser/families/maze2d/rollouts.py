@@ -20,8 +20,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from adaptdiffuser.contract import TrackedTrajectory
 from adaptdiffuser.diffusion.guidance import CoinObjective
-from adaptdiffuser.evolution.discriminator import TrackedTrajectory
 from adaptdiffuser.evolution.generate import NavigationTasks
 from adaptdiffuser.families.maze2d.execution import PlanFollower
 from adaptdiffuser.families.maze2d.simulator import Maze2D

@@ -9,7 +9,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from adaptdiffuser.evolution.discriminator import SelectionRule, TrackedTrajectory
+    from adaptdiffuser.contract import TrackedTrajectory
+    from adaptdiffuser.evolution.discriminator import SelectionRule
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """The Maze2D simulator: gymnasium-robotics PointMaze with Diffuser's evaluation protocol, D4RL's waypoint expert
 and the plan follower's tracking action, behind :class:`PlanningEnv` (what the maze's plan following, evolution
-and gold-coin code ask of a simulator beyond :class:`~adaptdiffuser.families.base.Simulator`).
+and gold-coin code ask of a simulator beyond :class:`~adaptdiffuser.contract.Simulator`).
 
 Coordinates are gymnasium-robotics' (centred, y up): cell (row, col) has its centre at
 x = col + 0.5 - width / 2, y = height / 2 - (row + 0.5). Observations are (x, y, vx, vy); actions are forces
@@ -14,7 +14,7 @@ from collections import deque
 
 import numpy as np
 
-from adaptdiffuser.families.base import Simulator, Step
+from adaptdiffuser.contract import Simulator, Step
 from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, Layout, parse_layout
 
 Cell = tuple[int, int]

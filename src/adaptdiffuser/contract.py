@@ -1,30 +1,34 @@
-"""The interfaces a benchmark family implements; the generic core (diffusion, planning, training, evaluation,
-stages) works only through them and never names a maze, a robot or a block.
+"""The contract between the generic core and the benchmark families: the types both sides use. It imports
+nothing of the project but :mod:`adaptdiffuser.layout` (the file layout), so every other module may import it.
 
-A family is one folder under ``families/`` and one line in :mod:`adaptdiffuser.families.registry`:
+A family is one folder under ``families/`` and one line in :mod:`adaptdiffuser.family_registry`:
 
 * :class:`Simulator`: the real dynamics of one episode: reset, reset to a stored full state, step with the real
   reward and termination, and a picture of an episode.
+* :class:`Controller`: turns observations (and plans) into actions for a batch of simulators in lock-step;
+  :class:`EpisodeBatchResult` is what an evaluation of it records.
 * :class:`Family`: builds the simulator of a task, makes the task's dataset, the score reference, the controller
   that turns plans into actions, and says whether its planner needs a value function. A family whose tasks
   evolve (``"evolve"`` in its task settings' ``OPTIONAL_STAGES``) also generates synthetic data with guidance and
-  judges it in the simulator (:meth:`Family.generate`, :meth:`Family.discriminate`, :meth:`Family.selected_data`).
+  judges it in the simulator (:meth:`Family.generate`, :meth:`Family.discriminate`, :meth:`Family.selected_data`),
+  the verdict being a :class:`Judgement` over :class:`TrackedTrajectory` executions.
+* :class:`TaskFiles`: the files of one task a family reads and writes.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from adaptdiffuser.layout import collect_dir, dataset_path, value_dir
+
 if TYPE_CHECKING:
     from adaptdiffuser.data.d4rl import ExternalData
     from adaptdiffuser.data.schema import Trajectories
-    from adaptdiffuser.evaluation import Controller, EpisodeBatchResult
-    from adaptdiffuser.evolution.discriminator import Judgement
 
 
 @dataclass(frozen=True)
@@ -71,10 +75,103 @@ class Simulator(ABC):
         return None
 
 
+class Controller:
+    """Chooses actions for a batch of environments running in lock-step."""
+
+    #: the state sequences planned at t = 0 for the current batch, if the controller plans (for pictures)
+    first_plans: np.ndarray | None = None
+    #: which rows of the batch are still running, set by :func:`run_episodes` before each :meth:`act` (``None``:
+    #: all); a controller may skip the others, whose actions are never executed
+    active: np.ndarray | None = None
+
+    def active_rows(self, n: int) -> np.ndarray:
+        """The boolean mask of the ``n`` rows still running."""
+        return np.ones(n, dtype=bool) if self.active is None else self.active
+
+    def begin(self, envs: list[Simulator], obs: np.ndarray, episodes: list[int]) -> None:
+        """Called once per batch after reset."""
+
+    def act(self, envs: list[Simulator], obs: np.ndarray, t: int) -> np.ndarray:
+        raise NotImplementedError
+
+
+@dataclass
+class EpisodeBatchResult:
+    """Per-episode outcomes of an evaluation run."""
+
+    episodes: list[int] = field(default_factory=list)
+    returns: list[float] = field(default_factory=list)
+    final_success: list[bool] = field(default_factory=list)
+    first_goal_step: list[int] = field(default_factory=list)
+    starts: list[np.ndarray] = field(default_factory=list)
+    goals: list[np.ndarray] = field(default_factory=list)
+    executed: list[np.ndarray] = field(default_factory=list)
+    plans: list[np.ndarray | None] = field(default_factory=list)
+    lengths: list[int] = field(default_factory=list)
+    terminated: list[bool] = field(default_factory=list)
+
+
+@dataclass
+class TrackedTrajectory:
+    """A plan executed by the tracking controller: real observations ``[H, obs]`` and the actions taken in each
+    of them ``[H, act]`` (the last one is the follower's action past the plan's end, so the trajectory fills a
+    training window of length H), the tracking error of each step ``[H - 1]``,
+    the protocol reward of each executed state ``[H]`` (as in the expert data) and the first step at the goal."""
+
+    observations: np.ndarray
+    actions: np.ndarray
+    errors: np.ndarray
+    rewards: np.ndarray
+    steps_to_goal: int
+
+    @property
+    def max_error(self) -> float:
+        return float(self.errors.max()) if len(self.errors) else 0.0
+
+    @property
+    def mean_error(self) -> float:
+        return float(self.errors.mean()) if len(self.errors) else 0.0
+
+    @property
+    def total_reward(self) -> float:
+        return float(self.rewards.sum())
+
+
+@dataclass
+class Judgement:
+    """The discriminator's verdict on generated plans: the trajectories it judged (executed, or planned when
+    tracking is off), which passed tracking, and the indices kept, best first where the rule ranks."""
+
+    trajectories: list[TrackedTrajectory]
+    passed_tracking: np.ndarray
+    kept: np.ndarray
+    coin_tasks: np.ndarray | None = None
+
+    def report(self) -> dict[str, float | int]:
+        """Counts and distributions for the stage report and ``metrics/summary.json``."""
+        n = len(self.trajectories)
+        passed = int(self.passed_tracking.sum())
+        mean_errors = np.array([t.mean_error for t in self.trajectories])
+        returns = np.array([t.total_reward for t in self.trajectories])
+        coin = self.coin_tasks if self.coin_tasks is not None else np.zeros(n, dtype=bool)
+        return {
+            "generated": n,
+            "rejected_tracking": n - passed,
+            "rejected_reward": passed - len(self.kept),
+            "kept": len(self.kept),
+            "kept_fraction": len(self.kept) / n if n else 0.0,
+            "tracking_error_mean": float(mean_errors.mean()) if n else 0.0,
+            "return_mean": float(returns.mean()) if n else 0.0,
+            "return_mean_kept": float(returns[self.kept].mean()) if len(self.kept) else 0.0,
+            "coin_generated": int(coin.sum()),
+            "coin_kept": int(coin[self.kept].sum()),
+        }
+
+
 class Family(ABC):
     """A benchmark family: everything the generic pipeline needs to know about its tasks. ``task`` arguments are
     :class:`~adaptdiffuser.config.TaskParams` (the family's own settings are ``task.settings``); ``paths`` is a
-    :class:`~adaptdiffuser.families.base.TaskFiles` naming the task's files."""
+    :class:`TaskFiles` naming the task's files."""
 
     #: the ``family`` value of a task entry in params.yaml
     name: str
@@ -112,6 +209,18 @@ class Family(ABC):
     def episode_metrics(self, result: EpisodeBatchResult) -> dict[str, float]:
         """Family-specific evaluation metrics (beside the score's mean and standard error)."""
         return {}
+
+    #: the name of the family's unseen task evaluated by :meth:`evaluate_unseen` (the key of its metrics and the
+    #: task section holding its settings), or None
+    unseen_task: str | None = None
+
+    def evaluate_unseen(
+        self, task: Any, planner: Any, alpha: float, ref: dict[str, Any], pictures: Path, title: str, progress: bool
+    ) -> dict[str, float]:
+        """The planner on the family's unseen task, guided with scale ``alpha`` (the top-level ``alpha``): its
+        metrics; pictures of some episodes written under ``pictures``, titled starting with ``title``; ``ref`` is
+        the task's score reference."""
+        raise NotImplementedError(f"family {self.name!r} has no unseen task")
 
     def extra_evaluations(self, task: Any, planner: Any, progress: bool) -> dict[str, float]:
         """Metrics of evaluations beside the task's score, run by the evaluate stage with the same planner (for
@@ -179,7 +288,7 @@ class Family(ABC):
 
 @dataclass(frozen=True)
 class TaskFiles:
-    """The files of one task under the pipeline's root (paths from :mod:`adaptdiffuser.stages.common`)."""
+    """The files of one task under the pipeline's root (paths from :mod:`adaptdiffuser.layout`)."""
 
     root: Path
     task: str
@@ -191,14 +300,12 @@ class TaskFiles:
 
     @property
     def dataset(self) -> Path:
-        from adaptdiffuser.stages.common import dataset_path
 
         return self.root / dataset_path(self.task)
 
     @property
     def value(self) -> Path:
         """The value function beside the model in use (fine-tuning carries phase 0's into every later model)."""
-        from adaptdiffuser.stages.common import value_dir
 
         return (
             self.root / self.model / "value" if self.model is not None else self.root / value_dir(self.task, self.seed)
@@ -207,6 +314,5 @@ class TaskFiles:
     @property
     def collect(self) -> Path:
         """The collect stage's folder: its summary and the family's own outputs, such as behaviour policies."""
-        from adaptdiffuser.stages.common import collect_dir
 
         return self.root / collect_dir(self.task)

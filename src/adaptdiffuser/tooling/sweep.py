@@ -3,7 +3,7 @@
 Each trial reruns the evolution phases of the swept task (``sweep.task``, default ``evolve``: generate,
 discriminate, fine-tune, evaluate, and the equal-compute control or the gold-coin evaluation when the objective
 needs them) for every training seed, in its own folder ``sweeps/<study>/trial_<n>/``, with the stage commands of
-``dvc.yaml`` (see :mod:`adaptdiffuser.sweep_trials`), reusing the project's cached data, reference scores and
+``dvc.yaml`` (see :mod:`adaptdiffuser.tooling.sweep_trials`), reusing the project's cached data, reference scores and
 phase-0 models (a search key that would change those is refused), and reports its objective after every phase so
 hopeless trials are pruned. The default objective is the final phase's gain over its control (the number the
 results lead with), not its raw score. Trials evaluate on their own episodes (``sweep.evaluate_seed``), never on
@@ -11,7 +11,7 @@ the pipeline's.
 
 Workers are processes sharing one Optuna storage: a journal file by default (``sweeps/<study>.journal``), or any
 RDB URL such as ``postgresql://user@host/db`` for workers on several machines (its password from ``PGPASSWORD``
-or ``~/.pgpass``, never logged: see :func:`adaptdiffuser.tracking.redact`). The sweep command fails and retries
+or ``~/.pgpass``, never logged: see :func:`~adaptdiffuser.tooling.mlflow_logging.redact`). The sweep fails and retries
 (once) the trial of any of its workers that dies, on both storages, and hands the rest of its share to a new
 worker (:func:`run_workers`); on PostgreSQL, Optuna heartbeats do the same for workers on other machines.
 
@@ -37,10 +37,15 @@ import optuna
 import yaml
 
 from adaptdiffuser.config import SearchDimension, SweepParams, params_from_dict
-from adaptdiffuser.dvc_experiments import ExperimentMode, check_experiment_repo, record_experiment, set_param_args
 from adaptdiffuser.errors import StageError
-from adaptdiffuser.sweep_trials import check_sweep_plan, run_trial, swept_task, trial_raw
-from adaptdiffuser.tracking import PARENT_RUN_ENV, loggable, redact_text
+from adaptdiffuser.tooling.dvc_experiments import (
+    ExperimentMode,
+    check_experiment_repo,
+    record_experiment,
+    set_param_args,
+)
+from adaptdiffuser.tooling.mlflow_logging import PARENT_RUN_ENV, loggable, redact_text
+from adaptdiffuser.tooling.sweep_trials import check_sweep_plan, run_trial, swept_task, trial_raw
 
 
 def suggest(trial: optuna.Trial, dim: SearchDimension) -> Any:
@@ -116,7 +121,7 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
     import torch
     from mlflow.tracking import MlflowClient
 
-    from adaptdiffuser.tracking import ensure_experiment
+    from adaptdiffuser.tooling.mlflow_logging import ensure_experiment
 
     torch.set_num_threads(ctx.threads)
     os.environ["MLFLOW_TRACKING_URI"] = ctx.tracking_uri
@@ -214,11 +219,11 @@ def run_sweep(
     processes; log the sweep to MLflow (parent run + one child per trial) and return the best trial.
 
     ``dvc_exp`` ``run`` or ``queue`` also records the best trial's values as the DVC experiment
-    ``<study>-best-trial<n>`` (see :mod:`adaptdiffuser.dvc_experiments`): reproduced with the pipeline's own
+    ``<study>-best-trial<n>`` (see :mod:`adaptdiffuser.tooling.dvc_experiments`): reproduced with the pipeline's own
     evaluation episodes, which no trial saw, so its score is the sweep's held-out result."""
     from mlflow.tracking import MlflowClient
 
-    from adaptdiffuser.tracking import ensure_experiment, tracking_uri
+    from adaptdiffuser.tooling.mlflow_logging import ensure_experiment, tracking_uri
 
     raw = yaml.safe_load(params_path.read_text()) or {}
     params = params_from_dict(raw)  # the search space is validated here, before any trial starts

@@ -21,8 +21,8 @@ from typing import Any
 import yaml
 
 from adaptdiffuser.config import Params, SweepParams, params_from_dict, set_dotted
-from adaptdiffuser.dvc_stages import DvcStage, key_touches, resolve_stages, upstream
 from adaptdiffuser.errors import StageError
+from adaptdiffuser.tooling.dvc_stages import DvcStage, key_touches, resolve_stages, upstream
 
 # The stages (by their dvc.yaml name) whose metrics an objective reads, and the key each one's metrics go under.
 OBJECTIVE_STAGES: dict[str, tuple[str, ...]] = {
@@ -168,7 +168,7 @@ def run_trial(
     seed inside each stage as in the pipeline; ``report(k, value, metrics)`` after each phase (it may raise
     :class:`optuna.TrialPruned`). Returns the final phase's objective."""
     from adaptdiffuser.io import atomic_path, read_json
-    from adaptdiffuser.tracking import tracking_uri
+    from adaptdiffuser.tooling.mlflow_logging import tracking_uri
 
     plan = plan_trial(root, raw, sweep.objective)
     trial_dir.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,7 @@
 """What a pipeline stage really uses, checked against the ``deps`` that ``dvc.yaml`` lists for it.
 
-With ``ADAPTDIFFUSER_TRACE_DEPS=<folder>`` set, :func:`install_from_env` (called by ``cli.run_stage``) records,
+With ``ADAPTDIFFUSER_TRACE_DEPS=<folder>`` set and ``tests/trace_hook`` and ``tests`` on ``PYTHONPATH``
+(:func:`traced_env`), :func:`install_from_env` (called at start-up by ``tests/trace_hook/sitecustomize.py``) records,
 for one stage process: the project modules loaded by its end (``src/adaptdiffuser/**`` and the stage script in
 ``pipeline/``), the files under the project root it opened for reading (Python's ``open`` audit event; Parquet
 files go through pyarrow's C++ readers, which no audit hook sees, so the pyarrow readers are wrapped) and the
@@ -8,7 +9,7 @@ folders it listed. At exit it writes ``<folder>/<DVC stage>-<pid>.json``.
 
 :func:`check` reads those traces and the stages of ``dvc.yaml`` (DVC's own resolution, templating included) and
 returns, per stage, the traced paths no dep covers (a folder dep covers everything under it) and the deps the stage
-never touched. ``python -m adaptdiffuser.deps_trace <project> <trace folder>`` prints both.
+never touched. ``python tests/deps_trace.py <project> <trace folder>`` prints both.
 """
 
 from __future__ import annotations
@@ -25,8 +26,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import adaptdiffuser
+
 ENV_VAR = "ADAPTDIFFUSER_TRACE_DEPS"
-PACKAGE_DIR = Path(__file__).resolve().parent
+CODE_STAGE = "code"  # the stage whose outs (code/<task>.json) fingerprint the code other stages run
+PACKAGE_DIR = Path(adaptdiffuser.__file__).resolve().parent
+HOOK_DIR = Path(__file__).resolve().parent / "trace_hook"
 SOURCE_PREFIX = "src/adaptdiffuser"  # where the package lives in the project (dvc.yaml names it so)
 # Project paths a stage may touch without listing them: DVC and git state, the MLflow store (every stage logs to
 # it), training's resume points (git-ignored, never an input of a finished stage), bytecode, MuJoCo's log.
@@ -66,8 +71,6 @@ class Tracer:
         self.written: set[str] = set()
         self.listed: set[str] = set()
         self.active = True
-        main = getattr(sys.modules.get("__main__"), "__file__", None)  # gone from __main__ by exit time
-        self.script = os.path.realpath(main) if main else None
 
     def relative(self, path: Any) -> str | None:
         """``path`` relative to the project root (POSIX), or None when it is not a project path."""
@@ -118,13 +121,14 @@ class Tracer:
         under the project root (the stage script)."""
         found: set[str] = set()
         files = [getattr(module, "__file__", None) for module in list(sys.modules.values())]
-        for file in [self.script, *files]:
+        script = os.path.realpath(sys.argv[0]) if sys.argv and sys.argv[0] else None  # the stage script
+        for file in [script, *files]:
             if not file:
                 continue
             path = Path(os.path.realpath(file))
             if not path.is_file():  # modules with a made-up __file__ (torch._ops: "_ops.py")
                 continue
-            if path == Path(__file__).resolve():  # the tracer itself, loaded only when tracing
+            if path == Path(__file__).resolve() or path.parent == HOOK_DIR:  # the tracer and its start-up hook
                 continue
             if path.is_relative_to(PACKAGE_DIR):
                 found.add(f"{SOURCE_PREFIX}/{path.relative_to(PACKAGE_DIR).as_posix()}")
@@ -202,6 +206,12 @@ def install(out_dir: str | Path, root: str | Path | None = None) -> Tracer:
     return tracer
 
 
+def traced_env(out_dir: str | Path) -> dict[str, str]:
+    """The environment variables that make a pipeline run's stage processes trace themselves into ``out_dir``."""
+    path = os.pathsep.join([str(HOOK_DIR), str(HOOK_DIR.parent), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    return {ENV_VAR: str(out_dir), "PYTHONPATH": path}
+
+
 def install_from_env() -> Tracer | None:
     """:func:`install` into ``$ADAPTDIFFUSER_TRACE_DEPS`` when it is set; nothing otherwise."""
     out_dir = os.environ.get(ENV_VAR)
@@ -231,6 +241,7 @@ class StageDeps:
     params_files: list[str]
     outs: list[str]
     upstream_outs: list[str] = field(default_factory=list)  # outs of every stage upstream of this one
+    code: list[str] = field(default_factory=list)  # the code its fingerprint deps (code/<task>.json) stand for
 
 
 @dataclass
@@ -269,13 +280,22 @@ def dvc_stages(root: str | Path) -> dict[str, StageDeps]:
     stages: dict[str, StageDeps] = {}
     with Repo(str(root)) as repo:
         graph = repo.index.graph  # edges point from a stage to the stages it depends on
+        # what a code fingerprint stands for: code/<task>.json -> the deps of the stage that writes it
+        fingerprinted = {
+            rel(out.fs_path): [rel(dep.fs_path) for dep in stage.deps if not isinstance(dep, ParamsDependency)]
+            for stage in repo.index.stages
+            if stage.name.split("@")[0] == CODE_STAGE
+            for out in stage.outs
+        }
         for stage in repo.index.stages:
             params = [dep for dep in stage.deps if isinstance(dep, ParamsDependency)]
+            deps = [rel(dep.fs_path) for dep in stage.deps if not isinstance(dep, ParamsDependency)]
             stages[stage.name] = StageDeps(  # the name DVC passes its commands as $DVC_STAGE
-                deps=[rel(dep.fs_path) for dep in stage.deps if not isinstance(dep, ParamsDependency)],
+                deps=deps,
                 params_files=[rel(dep.fs_path) for dep in params],
                 outs=[rel(out.fs_path) for out in stage.outs],
                 upstream_outs=[rel(out.fs_path) for up in nx.descendants(graph, stage) for out in up.outs],
+                code=[path for dep in deps for path in fingerprinted.get(dep, [])],
             )
     return stages
 
@@ -323,10 +343,11 @@ def check_stage(stage: StageDeps, trace: StageTrace, root: Path, indirect: Seque
             return any(under(path, dep) or under(dep, path) for dep in stage.deps)
         if any(fnmatch.fnmatchcase(path, pattern) for pattern in indirect):
             return any(under(path, out) for out in [*stage.deps, *stage.upstream_outs])
-        return any(under(path, dep) for dep in stage.deps)
+        return any(under(path, dep) for dep in [*stage.deps, *stage.code])
 
     missing = sorted(path for path in touched if not covered(path))
-    unused = [dep for dep in stage.deps if not any(under(path, dep) for path in trace.paths())]
+    fingerprints = {dep for dep in stage.deps if stage.code and dep.startswith(f"{CODE_STAGE}/")}
+    unused = [dep for dep in stage.deps if dep not in fingerprints and not any(under(p, dep) for p in trace.paths())]
     return StageReport(missing=missing, unused=unused)
 
 
@@ -372,10 +393,10 @@ def unused_by_group(reports: dict[str, StageReport]) -> dict[str, list[str]]:
 
 
 def main(argv: Iterable[str] | None = None) -> int:
-    """``python -m adaptdiffuser.deps_trace <project> <trace folder>``: print missing and unused deps."""
+    """``python tests/deps_trace.py <project> <trace folder>``: print missing and unused deps."""
     args = list(sys.argv[1:] if argv is None else argv)
     if len(args) != 2:
-        print("usage: python -m adaptdiffuser.deps_trace <project root> <trace folder>", file=sys.stderr)
+        print("usage: python tests/deps_trace.py <project root> <trace folder>", file=sys.stderr)
         return 2
     reports = check(*args)
     message = missing_message(reports)

@@ -2,7 +2,7 @@
 never imports a family's simulator (or its heavy dependencies) unless a task of that family runs.
 
 A family package has ``params.py`` defining ``TASK_PARAMS`` (the model of its ``task.<name>`` entries, light to
-import) and ``family.py`` defining ``FAMILY`` (its :class:`~adaptdiffuser.families.base.Family` subclass).
+import) and ``family.py`` defining ``FAMILY`` (its :class:`~adaptdiffuser.contract.Family` subclass).
 Adding a family = that folder plus one line here.
 """
 
@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 from functools import cache
 
-from adaptdiffuser.families.base import Family
+from adaptdiffuser.contract import Family
 
 FAMILIES: dict[str, str] = {
     "maze2d": "adaptdiffuser.families.maze2d",
