@@ -28,7 +28,7 @@ from collections.abc import Callable
 import torch
 from speed_paths import alternate, locomotion_paths, maze_paths
 
-from adaptdiffuser.diffusion.guidance import CoinObjective
+from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.stages.common import resolve_device
 
 PATHS = ("plain", "compiled")  # the eager network and the fast path, timed side by side

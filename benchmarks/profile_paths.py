@@ -17,7 +17,7 @@ import torch
 from speed_paths import locomotion_paths, maze_paths
 from torch.profiler import ProfilerActivity, profile
 
-from adaptdiffuser.diffusion.guidance import CoinObjective
+from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.stages.common import resolve_device
 
 #: operator name fragments -> category, first match wins

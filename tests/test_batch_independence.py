@@ -17,12 +17,13 @@ from adaptdiffuser.config import DiffusionParams, ModelParams, Params, apply_pro
 from adaptdiffuser.contract import EpisodeBatchResult, TaskFiles
 from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
-from adaptdiffuser.diffusion.guidance import CoinObjective, Guidance, GuidanceBase, ValueGuidance
+from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, ValueGuidance
 from adaptdiffuser.diffusion.noise import RowNoise
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler, Sampler
 from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.evolution.generate import generate_plans
 from adaptdiffuser.families.maze2d.execution import PlannerController
+from adaptdiffuser.families.maze2d.generation import generate_plans
+from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.families.maze2d.tasks import add_coins, sample_navigation_tasks
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.models.value import ValueNetwork

@@ -27,8 +27,8 @@ from adaptdiffuser.evolution.discriminator import (
     select_top_k,
     track_plan,
 )
-from adaptdiffuser.evolution.generate import generate_plans, split_task_trajectories, task_trajectories
 from adaptdiffuser.families.maze2d.execution import PlanFollower
+from adaptdiffuser.families.maze2d.generation import generate_plans, split_task_trajectories, task_trajectories
 from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, picks_coin_then_reaches_goal
 from adaptdiffuser.families.maze2d.tasks import sample_navigation_tasks
 from adaptdiffuser.family_registry import get_family

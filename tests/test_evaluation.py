@@ -9,14 +9,8 @@ import pytest
 from conftest import maze_sim
 
 from adaptdiffuser.contract import EpisodeBatchResult
-from adaptdiffuser.evaluation import (
-    ExpertController,
-    RandomController,
-    episode_rng,
-    normalized_score,
-    run_episodes,
-    summarize,
-)
+from adaptdiffuser.evaluation import RandomController, episode_rng, normalized_score, run_episodes, summarize
+from adaptdiffuser.families.maze2d.expert import ExpertController
 from adaptdiffuser.family_registry import get_family
 
 

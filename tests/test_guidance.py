@@ -14,8 +14,9 @@ from adaptdiffuser.config import DiffusionParams, ModelParams, PretrainParams
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import WindowDataset, joint_array
-from adaptdiffuser.diffusion.guidance import CoinObjective, ValueGuidance
+from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
+from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.training import train

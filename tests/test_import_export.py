@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from adaptdiffuser.deps_trace import ENV_VAR, check_stage, dvc_stages, load_traces
 from typer.testing import CliRunner
 
 from adaptdiffuser.cli import app
@@ -21,7 +22,6 @@ from adaptdiffuser.config import ConfigError, Params, apply_profile, params_from
 from adaptdiffuser.data.d4rl import DataImportError, read_d4rl, write_d4rl
 from adaptdiffuser.data.minari_io import read_minari
 from adaptdiffuser.data.schema import make_metadata, read_trajectories, write_trajectories
-from adaptdiffuser.deps_trace import ENV_VAR, check_stage, dvc_stages, load_traces
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator
 from adaptdiffuser.families.maze2d.external import (
     d4rl_position_to_xy,

@@ -20,9 +20,9 @@ from adaptdiffuser.data.windows import WindowDataset
 from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.evolution.discriminator import QuantileRule, TopKRule
-from adaptdiffuser.evolution.generate import NavigationTasks, task_trajectories
 from adaptdiffuser.families.maze2d.evolution import judge_rollouts, stay_after_arrival
 from adaptdiffuser.families.maze2d.execution import PlannerController
+from adaptdiffuser.families.maze2d.generation import NavigationTasks, task_trajectories
 from adaptdiffuser.families.maze2d.rollouts import ERROR_COLUMN, real_length, run_rollouts, settle_at_goal
 from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, RolloutRule
 from adaptdiffuser.families.maze2d.tasks import sample_navigation_tasks

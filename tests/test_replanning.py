@@ -13,8 +13,8 @@ from adaptdiffuser.checkpoint import make_bundle
 from adaptdiffuser.config import DiffusionParams, ModelParams
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.diffusion.samplers import DDIMSampler
-from adaptdiffuser.evolution.generate import NavigationTasks
 from adaptdiffuser.families.maze2d.execution import PlannerController
+from adaptdiffuser.families.maze2d.generation import NavigationTasks
 from adaptdiffuser.families.maze2d.rollouts import RolloutBatch
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.planning import Planner

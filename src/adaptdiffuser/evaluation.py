@@ -56,20 +56,6 @@ class RandomController(Controller):
         return np.stack([rng.uniform(-1.0, 1.0, size=env.act_dim) for env, rng in zip(envs, self.rngs, strict=True)])
 
 
-class ExpertController(Controller):
-    """The scripted expert of each environment (the R_max reference)."""
-
-    def __init__(self, seed: int) -> None:
-        self.seed = seed
-
-    def begin(self, envs, obs, episodes):
-        for env, ep in zip(envs, episodes, strict=True):
-            env.seed_expert(int(np.random.default_rng([self.seed, ep, 2]).integers(2**31)))
-
-    def act(self, envs, obs, t):
-        return np.stack([env.expert_action(o) for env, o in zip(envs, obs, strict=True)])
-
-
 def run_episodes(
     make_env: EnvFactory,
     controller: Controller,

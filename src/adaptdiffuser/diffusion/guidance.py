@@ -12,9 +12,8 @@ strided DDIM the variance of the equivalent stochastic jump (zero for the final 
   scores finished samples so a controller can keep the best of N.
 
 Reward sign convention: J is a *reward* (higher is better), so a positive ``alpha`` pulls plans toward what J
-prefers. The paper writes the coin objective as the distance ``sum_t ||s_t - s_c||_2`` and, for the Diffuser
-baseline, uses negative scales ({-50, -100, -200}); our :class:`CoinObjective` is the negative of that distance, so
-the paper's ``alpha = -50`` on the distance is our ``alpha = 50``.
+prefers (the Maze2D coin objective, :class:`~adaptdiffuser.families.maze2d.gold_coin.CoinObjective`, says how the
+paper's negative scales map to ours).
 
 Scale: the reward gradient is taken with respect to the *normalized* trajectory (the sampler's space) of J
 evaluated on raw states, and multiplied by the variance of the step. With Maze2D's min/max normalizer (U-Maze
@@ -38,19 +37,6 @@ class Objective(ABC):
 
     @abstractmethod
     def __call__(self, states: torch.Tensor) -> torch.Tensor: ...
-
-
-class CoinObjective(Objective):
-    """``J = -sum_t ||xy_t - coin||_2``: the closer the whole plan passes to its coin, the higher. ``coins`` is
-    ``[batch, 2]`` (one coin per plan) in maze coordinates."""
-
-    def __init__(self, coins: torch.Tensor, eps: float = 1e-6) -> None:
-        self.coins = coins
-        self.eps = eps
-
-    def __call__(self, states: torch.Tensor) -> torch.Tensor:
-        delta = states[..., :2] - self.coins.to(states)[:, None, :]
-        return -torch.sqrt((delta**2).sum(-1) + self.eps**2).sum(-1)
 
 
 class GuidanceBase:

@@ -19,13 +19,13 @@ from adaptdiffuser.config import DiscriminateParams, GenerateParams, TaskParams
 from adaptdiffuser.contract import Judgement, TrackedTrajectory
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.evolution.discriminator import SelectionRule, discriminate, planned_trajectory
-from adaptdiffuser.evolution.generate import (
+from adaptdiffuser.families.maze2d.execution import PlanFollower
+from adaptdiffuser.families.maze2d.generation import (
     NavigationTasks,
     generate_plans,
     split_task_trajectories,
     task_trajectories,
 )
-from adaptdiffuser.families.maze2d.execution import PlanFollower
 from adaptdiffuser.families.maze2d.rollouts import (
     ERROR_COLUMN,
     reached_goal,

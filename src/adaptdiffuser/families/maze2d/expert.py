@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 from tqdm import tqdm
 
+from adaptdiffuser.contract import Controller
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 
@@ -45,3 +46,17 @@ def collect_expert_stream(env: Maze2D, steps: int, seed: int, progress: bool = T
         timeout=timeout,
         metadata={},
     )
+
+
+class ExpertController(Controller):
+    """The scripted expert of each environment (the R_max reference)."""
+
+    def __init__(self, seed: int) -> None:
+        self.seed = seed
+
+    def begin(self, envs, obs, episodes):
+        for env, ep in zip(envs, episodes, strict=True):
+            env.seed_expert(int(np.random.default_rng([self.seed, ep, 2]).integers(2**31)))
+
+    def act(self, envs, obs, t):
+        return np.stack([env.expert_action(o) for env, o in zip(envs, obs, strict=True)])

@@ -11,8 +11,8 @@ import numpy as np
 from adaptdiffuser.config import DiscriminateParams, TaskParams
 from adaptdiffuser.contract import Controller, EpisodeBatchResult, Family, TaskFiles
 from adaptdiffuser.data.schema import Trajectories, make_metadata
-from adaptdiffuser.evaluation import ExpertController, RandomController, run_episodes, standard_error
-from adaptdiffuser.families.maze2d.expert import collect_expert_stream
+from adaptdiffuser.evaluation import RandomController, run_episodes, standard_error
+from adaptdiffuser.families.maze2d.expert import ExpertController, collect_expert_stream
 from adaptdiffuser.families.maze2d.simulator import Maze2D, resolve_layout
 from adaptdiffuser.plots import save_plan_picture
 

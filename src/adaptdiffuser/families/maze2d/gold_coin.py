@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from adaptdiffuser.diffusion.guidance import CoinObjective
+from adaptdiffuser.diffusion.guidance import Objective
 from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
 from adaptdiffuser.families.maze2d.execution import PlannerController
 from adaptdiffuser.families.maze2d.simulator import Cell, Maze2D, bfs_distances, shortest_path
@@ -27,6 +27,21 @@ from adaptdiffuser.plots import save_figure
 COIN_KINDS = ("on_path", "off_path", "behind_start")
 #: the paper's figure: Medium maze, coin at cell (4, 2) (row, column of the layout), start in the top-left room
 PAPER_MEDIUM_CASE = {"start": (1, 1), "coin": (4, 2)}
+
+
+class CoinObjective(Objective):
+    """``J = -sum_t ||xy_t - coin||_2``: the closer the whole plan passes to its coin, the higher. ``coins`` is
+    ``[batch, 2]`` (one coin per plan) in maze coordinates. The paper writes the objective as the distance
+    ``sum_t ||s_t - s_c||_2`` and, for the Diffuser baseline, uses negative scales ({-50, -100, -200}); J is the
+    negative of that distance, so the paper's ``alpha = -50`` on the distance is our ``alpha = 50``."""
+
+    def __init__(self, coins: torch.Tensor, eps: float = 1e-6) -> None:
+        self.coins = coins
+        self.eps = eps
+
+    def __call__(self, states: torch.Tensor) -> torch.Tensor:
+        delta = states[..., :2] - self.coins.to(states)[:, None, :]
+        return -torch.sqrt((delta**2).sum(-1) + self.eps**2).sum(-1)
 
 
 @dataclass

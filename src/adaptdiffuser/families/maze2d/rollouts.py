@@ -21,9 +21,9 @@ import torch
 from tqdm import tqdm
 
 from adaptdiffuser.contract import TrackedTrajectory
-from adaptdiffuser.diffusion.guidance import CoinObjective
-from adaptdiffuser.evolution.generate import NavigationTasks
 from adaptdiffuser.families.maze2d.execution import PlanFollower
+from adaptdiffuser.families.maze2d.generation import NavigationTasks
+from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed

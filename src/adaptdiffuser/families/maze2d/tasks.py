@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from adaptdiffuser.evolution.generate import NavigationTasks
+from adaptdiffuser.families.maze2d.generation import NavigationTasks
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 
 

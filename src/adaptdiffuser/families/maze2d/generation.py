@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from adaptdiffuser.contract import TrackedTrajectory
 from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
-from adaptdiffuser.diffusion.guidance import CoinObjective
+from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.seeding import derive_seed
 
