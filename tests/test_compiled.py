@@ -4,6 +4,11 @@ within float rounding, for Mish alone, for sampling plans and for training steps
 from __future__ import annotations
 
 import dataclasses
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +19,7 @@ from adaptdiffuser.config import ConfigError, DiffusionParams, ModelParams, Para
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.windows import WindowDataset
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.models.compiled import compile_network
+from adaptdiffuser.models.compiled import compile_network, is_unfinished_library, remove_unfinished_libraries
 from adaptdiffuser.models.unet import Mish
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.training import train
@@ -107,3 +112,76 @@ def test_compile_settings_are_validated_params_off_by_default_in_the_library() -
     with pytest.raises((ConfigError, ValueError), match="compile"):
         Params(compile={"training": "sometimes"})
     assert dataclasses.asdict(Params(compile={"sampling": True}).compile) == {"training": False, "sampling": True}
+
+
+COMPILE_PROBE = """
+import sys, torch
+from torch import nn
+from adaptdiffuser.models.compiled import compile_network
+
+
+class Net(nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.a, self.n, self.b = nn.Conv1d(4, 8, 5, padding=2), nn.GroupNorm(2, 8), nn.Conv1d(8, 4, 5, padding=2)
+
+    def forward(self, x):
+        return self.b(nn.functional.mish(self.n(self.a(x))))
+
+
+torch.manual_seed(0)
+net, x = Net(), torch.randn(3, 4, 16)
+with torch.no_grad():
+    eager = net(x)
+    if sys.argv[1] == "project":
+        compile_network(net, torch.device("cpu"), "compile.sampling")
+    else:
+        net.compile()
+    print("max difference", float((net(x) - eager).abs().max()))
+"""
+
+
+def _compile_in_process(tmp_path: Path, how: str) -> subprocess.CompletedProcess[str]:
+    script = tmp_path / "probe.py"
+    script.write_text(COMPILE_PROBE)
+    env = dict(os.environ, TORCHINDUCTOR_CACHE_DIR=str(tmp_path / "cache"), OMP_NUM_THREADS="1")
+    return subprocess.run([sys.executable, str(script), how], env=env, capture_output=True, text=True)
+
+
+def test_a_compile_cache_poisoned_by_a_killed_compile_heals(tmp_path: Path) -> None:
+    """A process killed while inductor writes a kernel leaves it cut short; plain ``torch.compile`` then fails in
+    every later process, the project's compile removes the unfinished kernels and compiles again."""
+    first = _compile_in_process(tmp_path, "project")
+    assert first.returncode == 0, first.stderr[-2000:]
+    libraries = sorted((tmp_path / "cache").rglob("*.so"))
+    assert libraries and not any(is_unfinished_library(path) for path in libraries)
+
+    def poison() -> None:
+        for path in libraries:  # what a kill leaves: the files exist, their contents never came
+            path.write_bytes(b"")
+
+    poison()
+    plain = _compile_in_process(tmp_path, "plain")
+    assert plain.returncode != 0  # the poison is real: torch alone does not recover
+    poison()
+    healed = _compile_in_process(tmp_path, "project")
+    assert healed.returncode == 0, healed.stderr[-2000:]
+    assert f"removed {len(libraries)} unfinished compiled kernels" in healed.stderr
+    assert float(healed.stdout.split("max difference")[-1]) < 1e-5
+    assert not any(is_unfinished_library(path) for path in (tmp_path / "cache").rglob("*.so"))
+
+
+def test_unfinished_libraries_are_told_from_whole_ones(tmp_path: Path) -> None:
+    whole = Path(torch.__file__).parent / "lib" / "libc10.so"
+    assert not is_unfinished_library(whole)
+    cut = tmp_path / "cache" / "ab" / "cut.so"
+    cut.parent.mkdir(parents=True)
+    data = whole.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])  # the header is there, the sections it names are not
+    empty = tmp_path / "cache" / "empty.so"
+    empty.write_bytes(b"")
+    kept = tmp_path / "cache" / "whole.so"
+    shutil.copy2(whole, kept)
+    assert is_unfinished_library(cut) and is_unfinished_library(empty)
+    assert remove_unfinished_libraries(tmp_path / "cache") == [cut, empty]
+    assert kept.exists() and not cut.exists() and not empty.exists()
