@@ -1,9 +1,7 @@
-"""The family registry and the dependency rule: the core reaches families only through base and registry."""
+"""The family registry: every family loads under its own name and fits the contract (the import rules between the
+core and the families are import-linter contracts, tests/test_architecture.py)."""
 
 from __future__ import annotations
-
-import ast
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,64 +12,6 @@ from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.diffusion.conditions import CONDITIONINGS
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.family_registry import FAMILIES, get_family, task_params_model
-
-SRC = Path(__file__).resolve().parents[1] / "src" / "adaptdiffuser"
-# What the core may import of families/: the package itself, its interfaces and its registry.
-INTERFACES = {"base", "registry"}
-# The documented, temporary exception: the evolution and gold-coin stages are maze-only until the locomotion phases
-# land; they reach the maze family directly (and no other family).
-MAZE_ONLY_STAGES = {"stages/evaluate_coin.py"}  # the gold-coin task is a Maze2D task
-
-
-def _imports(path: Path) -> set[str]:
-    """Every module ``path`` imports, absolute; for ``from X import y`` also ``X.y`` (``y`` may be a module)."""
-    package = ["adaptdiffuser", *path.relative_to(SRC).parent.parts]
-    names = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            names |= {alias.name for alias in node.names}
-        elif isinstance(node, ast.ImportFrom):
-            base = package[: len(package) - node.level + 1] if node.level else []
-            module = ".".join(base + ([node.module] if node.module else []))
-            names |= {module} | {f"{module}.{alias.name}" for alias in node.names}
-    return names
-
-
-def _family_imported(name: str) -> str | None:
-    """The family package an imported module name belongs to (None for the interfaces and non-family modules)."""
-    parts = name.split(".")
-    if parts[:2] != ["adaptdiffuser", "families"] or len(parts) < 3 or parts[2] in INTERFACES:
-        return None
-    return parts[2]
-
-
-def _core_modules() -> list[Path]:
-    return sorted(p for p in SRC.rglob("*.py") if p.relative_to(SRC).parts[0] != "families")
-
-
-def test_core_modules_never_import_a_family_directly() -> None:
-    offenders = []
-    for path in _core_modules():
-        where = path.relative_to(SRC).as_posix()
-        for name in sorted(_imports(path)):
-            family = _family_imported(name)
-            if family is not None and not (where in MAZE_ONLY_STAGES and family == "maze2d"):
-                offenders.append(f"{where} imports {name}")
-    assert not offenders, offenders
-
-
-def test_the_dependency_rule_sees_every_core_module_and_its_exceptions_exist() -> None:
-    core = {p.relative_to(SRC).as_posix() for p in _core_modules()}
-    assert {"planning.py", "evolution/discriminator.py", "plots.py", "stages/evaluate.py"} <= core
-    assert set(MAZE_ONLY_STAGES) <= core
-    # the exceptions are real: each of them does reach the maze family
-    for where in MAZE_ONLY_STAGES:
-        assert "maze2d" in {_family_imported(n) for n in _imports(SRC / where)}, where
-    # and the check recognises every spelling of a family import
-    assert _family_imported("adaptdiffuser.families.maze2d.simulator.Maze2D") == "maze2d"
-    assert _family_imported("adaptdiffuser.families.maze2d") == "maze2d"
-    assert _family_imported("adaptdiffuser.contract.Simulator") is None
-    assert _family_imported("adaptdiffuser.families") is None
 
 
 def test_every_registered_family_loads_under_its_own_name() -> None:
