@@ -6,4 +6,5 @@ bash scripts/setup.sh
 # shellcheck disable=SC1091
 source .venv/bin/activate
 dvc repro
+adaptdiffuser times   # how long each stage took (its MLflow runs)
 dvc metrics show

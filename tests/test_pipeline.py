@@ -233,6 +233,13 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
     hopper = client.get_experiment_by_name(HOPPER)
     stages = {run.data.tags["stage"] for run in client.search_runs([hopper.experiment_id])}
     assert stages == {"pipeline", "collect", "reference", "pretrain", "value", "evaluate", "summarize"}
+    # `adaptdiffuser times`: every stage run of this pipeline run, every task, with its duration
+    lines = _run(["adaptdiffuser", "times"], smoke_repo).splitlines()
+    assert f"{MAZE}  pretrain-phase0-seed0  FINISHED" in "\n".join(lines) and f"{HOPPER}  value" in "\n".join(lines)
+    every = sum(
+        len(client.search_runs([e.experiment_id])) - 1 for e in client.search_experiments() if e.name != "Default"
+    )
+    assert len(lines) == every + 1 and lines[-1].endswith(f"in all ({every} stage runs)")
 
 
 @pytest.mark.e2e

@@ -431,6 +431,20 @@ def gains(
 
 
 @app.command()
+def times() -> None:
+    """How long each stage of this pipeline run took (this commit and params.yaml), from its MLflow runs."""
+    from adaptdiffuser.tooling.mlflow_logging import stage_times
+
+    rows = stage_times(Path.cwd())
+    if not rows:
+        typer.echo("no stage has run at this commit and params.yaml (MLflow: mlflow.db)")
+        return
+    for row in rows:
+        typer.echo(f"{row['seconds']:8.1f} s  {row['task']}  {row['run']}  {row['status']}")
+    typer.echo(f"{sum(row['seconds'] for row in rows):8.1f} s  in all ({len(rows)} stage runs)")
+
+
+@app.command()
 def check(params: ParamsPath = Path("params.yaml")) -> None:
     """Validate a params file (exit 1 on a bad value, naming the key) and print what it will run."""
     from adaptdiffuser.config import describe

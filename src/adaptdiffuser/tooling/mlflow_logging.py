@@ -224,6 +224,26 @@ def pipeline_run(experiment_id: str, root: Path) -> str:
     return run_id
 
 
+def stage_times(root: Path) -> list[dict[str, Any]]:
+    """How long each stage run of this pipeline run took (:func:`pipeline_identity` at ``root``: this commit and
+    params.yaml), over every task's experiment, in the order they started: task, run name, status, seconds."""
+    root = root.resolve()
+    mlflow.set_tracking_uri(tracking_uri(root))
+    client = MlflowClient()
+    key = pipeline_identity(root)[0]
+    rows = []
+    for experiment in client.search_experiments():
+        parents = client.search_runs([experiment.experiment_id], f"tags.{PIPELINE_KEY_TAG} = '{key}'")
+        for parent in parents:
+            query = f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+            for run in client.search_runs([experiment.experiment_id], query, max_results=10_000):
+                end = run.info.end_time or run.info.start_time
+                seconds = (end - run.info.start_time) / 1000
+                rows.append({"task": experiment.name, "run": run.info.run_name, "status": run.info.status,
+                             "start": run.info.start_time, "seconds": seconds})  # fmt: skip
+    return sorted(rows, key=lambda row: row["start"])
+
+
 @contextmanager
 def stage_run(
     task: str,
