@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Create .venv (if needed) and install adaptdiffuser with its dev tools. Safe to run again.
+# Create .venv (if needed) and install adaptdiffuser with its dev tools, at the versions of requirements.lock
+# (scripts/lock.sh makes it; nothing is resolved here). Safe to run again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON="${PYTHON:-python3}"
@@ -8,4 +9,14 @@ if [ ! -x .venv/bin/python ]; then
 fi
 # torch is pinned to the CPU build (a looser range pulls several GB of CUDA packages).
 .venv/bin/pip install --quiet "torch==2.13.0"
-.venv/bin/pip install --quiet -e ".[dev]"
+lock_python="$(sed -n 's/.*for Python \([0-9.]*\) on.*/\1/p' requirements.lock | head -1)"
+venv_python="$(.venv/bin/python -c 'import sys; print(*sys.version_info[:2], sep=".")')"
+if [ "$lock_python" = "$venv_python" ]; then
+  .venv/bin/pip install --quiet --no-deps -r requirements.lock
+  .venv/bin/python scripts/check_lock.py   # the lock still matches pyproject.toml
+  .venv/bin/pip install --quiet --no-deps -e .
+  .venv/bin/pip check >/dev/null || { .venv/bin/pip check; exit 1; }
+else
+  echo "warning: requirements.lock is for Python $lock_python and this is $venv_python: resolving pyproject.toml" >&2
+  .venv/bin/pip install --quiet -e ".[dev]"
+fi
