@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from adaptdiffuser.deps_trace import ENV_VAR, check_stage, dvc_stages, load_traces
+from deps_trace import check_stage, dvc_stages, load_traces, traced_env
 from typer.testing import CliRunner
 
 from adaptdiffuser.cli import app
@@ -331,7 +331,7 @@ def test_dvc_import_stage_depends_on_the_external_file(tmp_path: Path) -> None:
     traces = tmp_path / "traces"
 
     def run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
-        out = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=os.environ | {ENV_VAR: str(traces)})
+        out = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=os.environ | traced_env(traces))
         assert out.returncode == 0, f"{cmd}: {out.stdout}\n{out.stderr}"
         return out
 
@@ -347,7 +347,7 @@ def test_dvc_import_stage_depends_on_the_external_file(tmp_path: Path) -> None:
     root = make_smoke_project(tmp_path / "project", run, edit)
     stages = run(["dvc", "stage", "list", "--name-only"], root).stdout.split()
     assert f"import-data@{MAZE}" in stages and f"collect@{MAZE}" not in stages and f"collect@{HOPPER}" in stages
-    run(["dvc", "repro", "--single-item", f"import-data@{MAZE}"], root)
+    run(["dvc", "repro", f"import-data@{MAZE}"], root)  # and the task's code fingerprint before it
     name = f"import-data@{MAZE}"  # dvc.yaml lists every module and file the stage used
     assert not check_stage(dvc_stages(root)[name], load_traces(traces)[name], root).missing
     assert read_trajectories(root / dataset_path(MAZE), env=MAZE).metadata["generator"]["format"] == "d4rl"
