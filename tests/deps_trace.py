@@ -30,6 +30,10 @@ import adaptdiffuser
 
 ENV_VAR = "ADAPTDIFFUSER_TRACE_DEPS"
 CODE_STAGE = "code"  # the stage whose outs (code/<task>.json) fingerprint the code other stages run
+# What every stage loads to validate params.yaml: each task entry's family model (and what it imports). Another
+# family's model can make params.yaml invalid (the stage stops), never change this task's outputs, so a stage whose
+# code is a fingerprint needs no dep on it; its own family's model is in its fingerprint.
+TASK_MODELS = ("src/adaptdiffuser/families/*/params.py", "src/adaptdiffuser/families/maze2d/layouts.py")
 PACKAGE_DIR = Path(adaptdiffuser.__file__).resolve().parent
 HOOK_DIR = Path(__file__).resolve().parent / "trace_hook"
 SOURCE_PREFIX = "src/adaptdiffuser"  # where the package lives in the project (dvc.yaml names it so)
@@ -343,6 +347,8 @@ def check_stage(stage: StageDeps, trace: StageTrace, root: Path, indirect: Seque
             return any(under(path, dep) or under(dep, path) for dep in stage.deps)
         if any(fnmatch.fnmatchcase(path, pattern) for pattern in indirect):
             return any(under(path, out) for out in [*stage.deps, *stage.upstream_outs])
+        if stage.code and any(fnmatch.fnmatchcase(path, pattern) for pattern in TASK_MODELS):
+            return True
         return any(under(path, dep) for dep in [*stage.deps, *stage.code])
 
     missing = sorted(path for path in touched if not covered(path))

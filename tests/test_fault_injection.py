@@ -46,6 +46,7 @@ MAZE, HOPPER = "maze2d-umaze", "hopper-medium"
 # Every stage of dvc.yaml, in pipeline order; each is killed in one instance: the first one dvc.yaml resolves,
 # except collect and pretrain, killed on the locomotion task (its behaviour policy; its value function).
 STAGES = [
+    "code",
     "collect",
     "reference",
     "pretrain",

@@ -21,10 +21,12 @@ from mlflow.tracking import MlflowClient
 
 from adaptdiffuser.config import ConfigError, apply_profile, load_params, params_from_dict
 from adaptdiffuser.errors import StageError
+from adaptdiffuser.io import write_json
 from adaptdiffuser.layout import model_dir
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
+from adaptdiffuser.tooling.code_fingerprint import fingerprint, fingerprint_path
 from adaptdiffuser.tooling.sweep import (
     _fail_trials_of_dead_workers,
     apply_best,
@@ -52,6 +54,7 @@ def project(tmp_path_factory: pytest.TempPathFactory) -> Path:
         run_collect(params, TASK, root, progress=False)
         run_reference(params, TASK, root, progress=False)
         run_pretrain(params, TASK, root, torch.device("cpu"), progress=False)
+        write_json(root / fingerprint_path(TASK), fingerprint(REPO, "maze2d"))  # the code stage's output
     finally:
         if old is not None:
             os.environ["MLFLOW_TRACKING_URI"] = old
@@ -186,7 +189,7 @@ def test_trials_run_the_stages_dvc_yaml_declares(tmp_path: Path) -> None:
     trial = trial_raw(raw, {})
     plan = plan_trial(tmp_path, trial, "gain")
     assert [stage.name for stage in plan.reused] == sorted(stage.name for stage in plan.reused)
-    assert {stage.kind for stage in plan.reused} == {"collect", "reference", "pretrain"}
+    assert {stage.kind for stage in plan.reused} == {"code", "collect", "reference", "pretrain"}
     assert set(plan.inputs) >= {"data/maze2d-umaze/dataset.parquet", "models/maze2d-umaze/phase0"}
     assert plan.phases[0].metrics == {
         "evaluate": "metrics/tasks/maze2d-umaze/phase1.json",
@@ -344,6 +347,7 @@ def test_a_trial_sweeps_a_locomotion_task_on_its_gain_over_the_control(tmp_path:
         run_collect(base, name, tmp_path, progress=False)
         run_reference(base, name, tmp_path, progress=False)
         run_pretrain(base, name, tmp_path, device, progress=False)
+        write_json(tmp_path / fingerprint_path(name), fingerprint(REPO, "locomotion"))  # the code stage's output
         trial = trial_raw(raw, {"evolution.discriminate.quantile": 0.3})
         params = params_from_dict(trial)
         assert params.evolve == name and params.phase(1).discriminate.quantile == 0.3
