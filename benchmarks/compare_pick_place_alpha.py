@@ -1,5 +1,5 @@
 """KUKA pick-and-place scores of one trained planner at several guidance scales, on validation episodes (printed,
-never asserted): how to choose ``task.<name>.pick_place.alpha`` without looking at the evaluation episodes.
+never asserted): how to choose ``alpha`` for KUKA without looking at the evaluation episodes.
 
 For each alpha, the task's phase-k model of one training seed runs the pick-and-place evaluation of every setup on
 ``--episodes`` episodes from ``--seed`` (default 7: a validation seed, not ``pick_place.seed``).
@@ -13,7 +13,9 @@ WORKSPACE is a pipeline folder holding a trained KUKA model (after `dvc repro` o
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
+from pathlib import Path
 
 from trained_workspace import add_workspace_args, load_trained
 
@@ -35,14 +37,14 @@ def main() -> None:
         f"{args.task} phase {args.phase}, training seed {args.training_seed}: {args.episodes} episodes per setup "
         f"from seed {args.seed}"
     )
+    ref = ws.reference()
     for alpha in args.alphas:
-        task = ws.task("pick_place.alpha", alpha)
         start = time.perf_counter()
-        metrics = family.extra_evaluations(task, planner, progress=False)
+        with tempfile.TemporaryDirectory() as pictures:
+            metrics = family.evaluate_unseen(base, planner, alpha, ref, Path(pictures), "", progress=False)
         scores = "  ".join(
-            f"setup {s}: {metrics[f'pick_place_setup{s}_score_mean']:.1f} +- "
-            f"{metrics[f'pick_place_setup{s}_score_stderr']:.1f}"
-            for s in task.settings.pick_place.setups
+            f"setup {s}: {metrics[f'setup{s}_score_mean']:.1f} +- {metrics[f'setup{s}_score_stderr']:.1f}"
+            for s in base.settings.pick_place.setups
         )
         print(f"alpha {alpha:g}: {scores}  ({time.perf_counter() - start:.0f} s)")
 

@@ -219,7 +219,7 @@ def test_generated_plans_do_not_depend_on_the_batch_size() -> None:
 
 
 def test_gold_coin_plans_with_and_without_guidance_share_their_noise() -> None:
-    """The evaluate-coin stage draws its unguided pictures with the controller's seeds of t = 0: guidance of
+    """The evaluate-unseen stage draws its unguided pictures with the controller's seeds of t = 0: guidance of
     scale zero gives back exactly those plans, and a real scale moves them."""
     envs = [maze_sim() for _ in range(3)]
     obs = np.stack([env.reset(np.random.default_rng(i)) for i, env in enumerate(envs)])

@@ -228,6 +228,28 @@ def test_resume_state_of_another_run_is_ignored(tmp_path: Path, dataset: WindowD
     assert_same_weights(weights(bundle), weights(fresh))
 
 
+def test_a_checkpoint_hook_sees_the_ema_of_each_checkpoint_and_changes_nothing(
+    dataset: WindowDataset, new_bundle
+) -> None:
+    """``on_checkpoint`` runs every ``checkpoint_every`` steps and at the end with the EMA of that step; sampling
+    from the EMA there (as a learning curve does) leaves the training run exactly as without the hook."""
+    cfg = dataclasses.replace(CFG, steps=25)
+    plain = new_bundle(0)
+    train(plain, dataset, cfg, CPU, progress=False)
+    hooked = new_bundle(0)
+    seen: dict[int, dict[str, torch.Tensor]] = {}
+
+    def evaluate(step: int) -> None:
+        seen[step] = {k: v.clone() for k, v in hooked.ema.model.state_dict().items()}
+        DDIMSampler(2).sample(hooked.ema, {0: torch.zeros(3, 4)}, RowNoise([1, 2, 3]))
+
+    train(hooked, dataset, cfg, CPU, progress=False, on_checkpoint=evaluate)
+    assert sorted(seen) == [10, 20, 25]
+    assert_same_weights(weights(hooked), weights(plain))
+    assert all(torch.equal(seen[25][k], v) for k, v in plain.ema.model.state_dict().items())
+    assert any(not torch.equal(seen[10][k], seen[25][k]) for k in seen[25])  # each call saw its own step's EMA
+
+
 def test_fingerprint() -> None:
     assert fingerprint({"a": 1, "b": [1, 2]}) == fingerprint({"b": [1, 2], "a": 1})
     assert fingerprint({"a": 1}) != fingerprint({"a": 2})

@@ -58,7 +58,7 @@ def write_params_raw(tmp_path: Path, raw: dict) -> Path:
 def test_repo_params_load() -> None:
     params = load_params(REPO / "params.yaml")
     assert isinstance(params, Params)
-    assert params.tasks == (UMAZE,) and params.coin_tasks == (UMAZE,) and params.evolve == UMAZE
+    assert params.tasks == (UMAZE,) and params.unseen_tasks == (UMAZE,) and params.evolve == UMAZE
     task = params.resolve(UMAZE)
     assert isinstance(task, TaskParams) and params.evolved == task
     assert (task.name, task.family) == (UMAZE, "maze2d") and isinstance(task.settings, Maze2DTaskParams)
@@ -83,7 +83,7 @@ def test_repo_params_load() -> None:
 
 def test_default_params_have_one_umaze_task() -> None:
     params = Params()
-    assert params.tasks == (UMAZE,) and params.coin_tasks == (UMAZE,) and params.evolve == UMAZE
+    assert params.tasks == (UMAZE,) and params.unseen_tasks == (UMAZE,) and params.evolve == UMAZE
     assert list(params.task) == [UMAZE] and params.phases == ()
     task = params.resolve(UMAZE)
     assert task.family == "maze2d" and task.settings == Maze2DTaskParams()
@@ -107,6 +107,8 @@ def test_profile_list() -> None:
         "paper-kuka",
         "paper-locomotion",
         "science",
+        "science-medium",
+        "science-large",
         *PAPER,
     }
 
@@ -123,17 +125,25 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
     if profile in PAPER:
         maze, horizon = PAPER[profile]
         task = params.evolved
-        assert task.family == "maze2d" and task.name in params.tasks and task.name in params.coin_tasks
+        assert task.family == "maze2d" and task.name in params.tasks and task.name in params.unseen_tasks
         assert task.model.dim == 32 and task.model.dim_mults == [1, 4, 8]
         assert task.settings.env.maze == maze and task.diffusion.horizon == horizon
         assert task.planner.sampler == "ddpm"
+    if profile in ("science-medium", "science-large"):
+        maze = profile.removeprefix("science-")
+        task = params.evolved
+        assert task.name == f"maze2d-{maze}" and params.tasks == params.unseen_tasks == (task.name,)
+        assert task.settings.env.maze == maze and task.settings.episode_steps == {"medium": 600, "large": 800}[maze]
+        assert task.diffusion.horizon == {"medium": 256, "large": 384}[maze] and params.seeds == (0, 1, 2)
+        assert task.model.dim == 16 and task.planner.sampler_steps == 4  # the quick profile's model and planner
     if profile == "smoke":
         assert params.pretrain.steps == 20 and params.diffusion.horizon == 32
         maze = params.resolve(UMAZE)
         assert maze.settings.collect.steps == 4000 and maze.diffusion.horizon == 32
         assert maze.settings.env.maze == "umaze" and maze.settings.expert.p_gain == 10.0  # inherited from quick
         hopper = params.resolve("hopper-medium")  # one task of each family, with its own generic overrides
-        assert params.tasks == (UMAZE, "hopper-medium", "kuka-stacking") and params.coin_tasks == (UMAZE,)
+        assert params.tasks == (UMAZE, "hopper-medium", "kuka-stacking")
+        assert params.unseen_tasks == (UMAZE, "kuka-stacking")  # the families with an unseen task
         assert params.resolve("kuka-stacking").family == "kuka"
         assert hopper.family == "locomotion" and hopper.settings.episode_steps == 40
         assert hopper.diffusion.horizon == 16 and hopper.model.dim_mults == [1, 2]
@@ -141,13 +151,14 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         for name in ("walker2d-medium-replay", "halfcheetah-medium-expert"):  # stages run by tests, not DVC
             assert params.resolve(name).family == "locomotion" and name not in params.tasks
     if profile == "quick-locomotion":
-        # `coin_tasks: []` replaces the quick profile's (an empty list is not merged)
-        assert params.tasks == ("hopper-medium",) and params.coin_tasks == () and params.evolve == "hopper-medium"
+        # `unseen_tasks: []` replaces the quick profile's (an empty list is not merged)
+        assert params.tasks == ("hopper-medium",) and params.unseen_tasks == () and params.evolve == "hopper-medium"
         assert params.phase_names == ["phase1", "phase2"] and params.phase(1).generate.sampler == "ddpm"
         hopper = params.resolve("hopper-medium")
         assert hopper.family == "locomotion" and hopper.diffusion.horizon == 32
     if profile == "quick-kuka":
-        assert params.tasks == ("kuka-stacking",) and params.coin_tasks == () and params.evolve == "kuka-stacking"
+        assert params.tasks == params.unseen_tasks == ("kuka-stacking",) and params.evolve == "kuka-stacking"
+        assert params.alpha == 10.0  # guides pick-and-place, in generation and its evaluation
         kuka = params.resolve("kuka-stacking")
         assert kuka.family == "kuka" and kuka.diffusion.horizon == 128 and kuka.settings.replans == 3
         assert params.phase_names == ["phase1", "phase2"] and params.phase(2).discriminate.max_error == 1.02
@@ -156,7 +167,7 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert kuka.settings.collect.episodes == 10000 and kuka.model.dim == 128 and kuka.diffusion.n_steps == 1000
         assert params.evolve == "kuka-stacking" and params.phase(1).discriminate.max_error == 1.02
     if profile == "paper-locomotion":
-        assert len(params.tasks) == 9 and params.coin_tasks == () and params.evolve == "hopper-medium"
+        assert len(params.tasks) == 9 and params.unseen_tasks == () and params.evolve == "hopper-medium"
         assert params.phase_names == ["phase1", "phase2"] and params.phase(1).discriminate.rule == "paper"
         assert {params.resolve(name).family for name in params.tasks} == {"locomotion"}
         assert (
@@ -321,7 +332,7 @@ REJECTED = [
     (umaze(collect={"steps": 1.5}), f"{T}.collect.steps", "must be an integer, got 1.5"),
     ({"model": {"dim_mults": []}}, "model.dim_mults", "non-empty list of positive integers"),
     ({"sweep": {"trials": 0}}, "sweep.trials", "must be > 0"),
-    ({"sweep": {"objective": "speed"}}, "sweep.objective", "must be one of 'gain', 'score', 'coin', 'mix'"),
+    ({"sweep": {"objective": "speed"}}, "sweep.objective", "must be one of 'gain', 'score', 'unseen', 'mix'"),
     ({"sweep": {"evaluate_seed": 1000}}, "sweep.evaluate_seed", "must not be tuned on the episodes"),
     ({"sweep": {"task": "maze2d-large"}}, "sweep.task", "must be one of tasks"),
     ({"seeds": []}, "seeds", "needs at least one training seed"),
@@ -333,29 +344,29 @@ REJECTED = [
     ({"sweep": {"space": {"alpha": 3}}}, "sweep.space.alpha", "must be a mapping"),
     ({"sweep": {"space": [1, 2]}}, "sweep.space", "must map params keys to ranges"),
     ({"sweep": {"storage": 5}}, "sweep.storage", "must be a string, got 5"),
-    # the task lists: `tasks` names defined tasks, `coin_tasks` exactly its maze2d ones, `evolve` one of `tasks`
+    # the task lists: `tasks` names defined tasks, `unseen_tasks` exactly those with an unseen task, `evolve` one
     ({"tasks": []}, "tasks", "must list at least one task"),
     ({"tasks": None}, "tasks", "must list at least one task"),
     ({"tasks": ["maze2d-medium"]}, "tasks", "'maze2d-medium' is not a task defined under 'task'"),
     ({"tasks": [UMAZE, UMAZE]}, "tasks", "lists a task twice"),
-    ({"coin_tasks": []}, "coin_tasks", "must list exactly the tasks of 'tasks' that need this stage: ['maze2d-umaze']"),
-    ({"coin_tasks": ["maze2d-medium"]}, "coin_tasks", "'maze2d-medium' is not a task defined under 'task'"),
+    ({"unseen_tasks": []}, "unseen_tasks", "the tasks of 'tasks' whose family has an unseen task: ['maze2d-umaze']"),
+    ({"unseen_tasks": ["maze2d-medium"]}, "unseen_tasks", "'maze2d-medium' is not a task defined under 'task'"),
     (
         {
             "task": {"maze2d-medium": {"family": "maze2d", "env": {"maze": "medium"}}},
-            "coin_tasks": [UMAZE, "maze2d-medium"],
+            "unseen_tasks": [UMAZE, "maze2d-medium"],
         },
-        "coin_tasks",
-        "must list exactly the tasks of 'tasks' that need this stage: ['maze2d-umaze']",
+        "unseen_tasks",
+        "must list exactly the tasks of 'tasks' whose family has an unseen task: ['maze2d-umaze']",
     ),
     (
         {
             "task": {"hopper-medium": {"family": "locomotion"}},
             "tasks": [UMAZE, "hopper-medium"],
-            "coin_tasks": [UMAZE, "hopper-medium"],
+            "unseen_tasks": [UMAZE, "hopper-medium"],
         },
-        "coin_tasks",
-        "must list exactly the tasks of 'tasks' that need this stage: ['maze2d-umaze']",
+        "unseen_tasks",
+        "must list exactly the tasks of 'tasks' whose family has an unseen task: ['maze2d-umaze']",
     ),
     ({"evolve": "maze2d-medium"}, "evolve", "'maze2d-medium' must be one of tasks ['maze2d-umaze'] (or null)"),
     (
@@ -388,7 +399,7 @@ REJECTED = [
     (
         {
             "tasks": ["hopper-medium"],
-            "coin_tasks": [],
+            "unseen_tasks": [],
             "evolve": None,
             "phases": {},
             "task": {"hopper-medium": {"family": "locomotion", "episode_steps": 10}},
@@ -399,7 +410,7 @@ REJECTED = [
     (
         {
             "tasks": ["hopper-medium"],
-            "coin_tasks": [],
+            "unseen_tasks": [],
             "evolve": None,
             "phases": {},
             "task": {"hopper-medium": {"family": "locomotion", "guide": {"warm_start_step": 64}}},
@@ -454,7 +465,7 @@ def test_rejected_values_give_a_one_line_error_starting_with_the_key(
             f"{T}.env.episode_steps: 64 is shorter than diffusion.horizon=128",
         ),
         ("tasks: [maze2d-umaze]", "tasks: []", "tasks: must list at least one task"),
-        ("coin_tasks: [maze2d-umaze]", "coin_tasks: []", "coin_tasks: must list exactly the tasks of 'tasks'"),
+        ("unseen_tasks: [maze2d-umaze]", "unseen_tasks: []", "unseen_tasks: must list exactly the tasks of 'tasks'"),
         ("evolve: maze2d-umaze", "evolve: null", "evolve: is null but phases are declared"),
         ("evolve: maze2d-umaze", "evolve: maze2d-large", "evolve: 'maze2d-large' must be one of tasks"),
         ("    family: maze2d", "    family: maze3d", f"{T}.family: must be one of ['kuka', 'locomotion', 'maze2d']"),
@@ -505,14 +516,14 @@ def test_describe_lists_the_task_and_the_stages_dvc_runs() -> None:
     assert get_family("maze2d").describe(task) == {"maze": "umaze", "episode_steps": 300}  # 300-step episodes
     stages = [line.strip().split(":")[0] for line in lines[lines.index("stages:") + 1 :]]
     assert stages == stage_names(params)
-    assert stages[:6] == [
-        f"{s}@{UMAZE}" for s in ("code", "collect", "reference", "pretrain", "evaluate-phase0", "evaluate-coin-phase0")
-    ]
-    phase_stages = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
-    assert stages[6:13] == [f"{s}@phase1" for s in phase_stages]
-    assert stages[-2:] == ["summarize", "report"] and len(stages) == 6 + 7 * 2 + 2
+    phase0 = ("code", "collect", "reference", "pretrain", "evaluate-phase0", "evaluate-unseen-phase0")
+    assert stages[:6] == [f"{s}@{UMAZE}" for s in phase0]
+    phase_stages = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control")
+    phase_stages += ("evaluate-unseen", "evaluate-unseen-control")
+    assert stages[6:14] == [f"{s}@phase1" for s in phase_stages]
+    assert stages[-2:] == ["summarize", "report"] and len(stages) == 6 + 8 * 2 + 2
     dvc = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
-    items = {"${tasks}": params.tasks, "${coin_tasks}": params.coin_tasks, "${phases}": params.phase_names}
+    items = {"${tasks}": params.tasks, "${unseen_tasks}": params.unseen_tasks, "${phases}": params.phase_names}
     items |= {"${task}": list(params.task)}
     items |= {"${collect_tasks}": params.collect_tasks, "${imports}": list(params.imports)}
     expanded = {f"{name}@{k}" for name, spec in dvc.items() if "foreach" in spec for k in items[spec["foreach"]]} | {
@@ -525,7 +536,7 @@ def test_describe_and_stages_of_a_phase0_only_locomotion_task() -> None:
     params = params_from_dict(
         {
             "tasks": ["hopper-medium"],
-            "coin_tasks": [],
+            "unseen_tasks": [],
             "evolve": None,
             "task": {"hopper-medium": {"family": "locomotion"}},
         }
@@ -657,7 +668,7 @@ def test_a_locomotion_task_with_phases_describes_its_coin_stages(tmp_path: Path)
     """``check`` on a locomotion task with phases: its coin stages are named as skipped (no gold-coin task)."""
     p = apply_and_load("quick-locomotion", tmp_path)
     lines = describe(p)
-    assert "  evaluate-coin@phase1: skipped (hopper-medium has no gold-coin task)" in lines
+    assert "  evaluate-unseen@phase1: skipped (hopper-medium has no unseen task)" in lines
     assert p.evolve == "hopper-medium" and p.phase(2).discriminate.rule == "paper"
 
 
@@ -668,7 +679,10 @@ def test_the_kuka_profiles_describe_their_data_and_phases(tmp_path: Path) -> Non
     assert "  finetune@phase2: 3000 steps on phases [1, 2] + expert (0.5 of each batch)" in lines
     lines = describe(apply_and_load("paper-kuka", tmp_path))
     assert "  discriminate@phase1: paper thresholds, tracking error <= 1.02" in lines
-    assert "  evaluate-coin@phase2: skipped (kuka-stacking has no gold-coin task)" in lines
+    assert "  evaluate-unseen@phase2: pick-and-place, 100 episodes in each of setups [1, 2]" in lines
+    assert (
+        "  evaluate-unseen-control@phase2: the control, pick-and-place, 100 episodes in each of setups [1, 2]" in lines
+    )
 
 
 def test_science_profile_runs_both_tasks_on_three_seeds(tmp_path: Path) -> None:
@@ -690,7 +704,7 @@ def test_task_override_is_merged_over_the_top_level_section(tmp_path: Path) -> N
     medium = {"family": "maze2d", "env": {"maze": "medium"}, "diffusion": {"horizon": 256, "n_steps": 128}}
     overlay = {
         "tasks": [UMAZE, "maze2d-medium"],
-        "coin_tasks": [UMAZE, "maze2d-medium"],
+        "unseen_tasks": [UMAZE, "maze2d-medium"],
         "collect_tasks": [UMAZE, "maze2d-medium"],
         "task": {"maze2d-medium": medium | {"model": {"dim": 32}, "planner": {"sampler": "ddpm"}}},
     }
@@ -717,7 +731,7 @@ def test_task_override_is_merged_over_the_top_level_section(tmp_path: Path) -> N
 
 def test_paper_rule_is_checked_on_the_evolved_task_only(tmp_path: Path) -> None:
     custom = {"family": "maze2d", "env": {"layout": ["######", "#..#G#", "#....#", "#.##.#", "######"]}}
-    overlay = {"tasks": [UMAZE, "maze2d-custom"], "coin_tasks": [UMAZE, "maze2d-custom"]}
+    overlay = {"tasks": [UMAZE, "maze2d-custom"], "unseen_tasks": [UMAZE, "maze2d-custom"]}
     overlay["collect_tasks"] = overlay["tasks"]
     overlay["task"] = {"maze2d-custom": custom}
     params = load_params(write_params(tmp_path, overlay))  # evolve: maze2d-umaze, rule paper
@@ -734,7 +748,7 @@ def test_paper_rule_is_checked_on_the_evolved_task_only(tmp_path: Path) -> None:
 def test_locomotion_task_entry_validates_and_bad_names_are_rejected() -> None:
     raw = {
         "tasks": ["hopper-medium"],
-        "coin_tasks": [],
+        "unseen_tasks": [],
         "evolve": None,
         "task": {"hopper-medium": {"family": "locomotion", "episode_steps": 200, "diffusion": {"horizon": 32}}},
     }

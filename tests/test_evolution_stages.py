@@ -31,7 +31,7 @@ from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
-from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
+from adaptdiffuser.stages.evaluate_unseen import run_evaluate_unseen
 from adaptdiffuser.stages.finetune import finetune_config, run_finetune
 from adaptdiffuser.stages.generate import run_generate
 from adaptdiffuser.stages.pretrain import run_pretrain
@@ -144,7 +144,7 @@ def test_a_phase_that_keeps_nothing_is_a_result_and_equals_its_control(
     run_reference(strict, TASK, copy, progress=False)
     for k in (0, 1):
         run_evaluate(strict, TASK, copy, k, CPU, progress=False)
-        run_evaluate_coin(strict, TASK, copy, k, CPU, progress=False)
+        run_evaluate_unseen(strict, TASK, copy, k, CPU, progress=False)
     gain = run_evaluate(strict, TASK, copy, 1, CPU, progress=False, control=True)
     assert gain["gain_mean"] == 0.0
     summary = run_summarize(strict, copy)[TASK]["phase_1"]

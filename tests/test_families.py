@@ -38,7 +38,7 @@ def test_locomotion_family_builds_the_simulator_of_a_task_name() -> None:
     task = params_from_dict(
         {
             "tasks": ["walker2d-medium-replay"],
-            "coin_tasks": [],
+            "unseen_tasks": [],
             "evolve": None,
             "task": {"walker2d-medium-replay": {"family": "locomotion", "episode_steps": 200}},
         }

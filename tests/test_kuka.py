@@ -244,15 +244,17 @@ def test_generation_records_executed_plan_chains_and_the_discriminator_judges_th
     family = get_family("kuka")
     planner = Planner(load_bundle(smoke_repo / "models/kuka-stacking/phase0/seed0"), make_sampler("ddim", 2), "cpu")
     cfg = GenerateParams(tasks=5, batch_size=2)
-    generated, stats = family.generate(task, planner, None, cfg, 0.0, 11, {"phase": 1}, progress=False)
+    generated, stats = family.generate(task, planner, None, cfg, params.alpha, 11, {"phase": 1}, progress=False)
     steps = task.settings.pick_place.replans * (task.diffusion.horizon - 1)
     assert stats["generated"] == 5 and len(generated) == 5 * (steps + 1)
     assert generated.extra[SETUP_COLUMN][:: steps + 1].tolist() == [1, 1, 1, 2, 2]
     path = tmp_path / "generated.parquet"
     write_trajectories(path, generated)
     generated = read_trajectories(path, env="kuka-stacking")
-    again, _ = family.generate(task, planner, None, cfg, 0.0, 11, {"phase": 1}, progress=False)
+    again, _ = family.generate(task, planner, None, cfg, params.alpha, 11, {"phase": 1}, progress=False)
     np.testing.assert_array_equal(again.observation, generated.observation)  # same seed, same plans
+    unguided, _ = family.generate(task, planner, None, cfg, 0.0, 11, {"phase": 1}, progress=False)
+    assert params.alpha > 0 and not np.array_equal(unguided.observation, generated.observation)  # alpha guides
     starts = generated.observation[:: steps + 1]
     assert np.allclose(block_positions(starts[3])[:, :2], block_positions(starts[3])[0, :2])  # setup 2: a tower
     cfg = DiscriminateParams(max_error=100.0, rule="quantile")

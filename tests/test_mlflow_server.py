@@ -93,7 +93,7 @@ def test_stages_log_to_a_tracking_server(server: str, tmp_path: Path, monkeypatc
     for name in ("DVC_EXP_NAME", "DVC_ROOT", PIPELINE_RUN_ENV, PARENT_RUN_ENV):
         monkeypatch.delenv(name, raising=False)
     raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", tmp_path / "params.yaml").read_text())
-    raw.update(tasks=[TASK], coin_tasks=[TASK], evolve=TASK)
+    raw.update(tasks=[TASK], unseen_tasks=[TASK], evolve=TASK)
     if "collect_tasks" in raw:
         raw["collect_tasks"] = [TASK]
     params = params_from_dict(raw)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import mlflow
 import networkx as nx
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import yaml
@@ -27,13 +28,15 @@ from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 REPO = Path(__file__).resolve().parents[1]
-PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
+PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control")
+PHASE_STAGES += ("evaluate-unseen", "evaluate-unseen-control")
 MAZE, HOPPER, KUKA = "maze2d-umaze", "hopper-medium", "kuka-stacking"
 PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
 STAGES = [
     *(f"code@{task}" for task in (MAZE, HOPPER, KUKA)),
     *(f"{stage}@{task}" for task in (MAZE, HOPPER, KUKA) for stage in PHASE0_STAGES),
-    f"evaluate-coin-phase0@{MAZE}",
+    f"evaluate-unseen-phase0@{MAZE}",
+    f"evaluate-unseen-phase0@{KUKA}",
     *(f"{stage}@phase{k}" for k in (1, 2) for stage in PHASE_STAGES),
     "summarize",
     "report",
@@ -52,12 +55,12 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
     summary = json.loads((smoke_repo / "metrics/summary.json").read_text())
     assert set(summary) == {MAZE, HOPPER, KUKA}
     maze = summary[MAZE]
-    assert set(maze) == {"phase_0", "phase_1", "phase_2"}
+    assert set(maze) == {"unseen_task", "phase_0", "phase_1", "phase_2"} and maze["unseen_task"] == "gold_coin"
     for k in (0, 1, 2):
         entry = maze[f"phase_{k}"]
-        coin = entry["gold_coin"]
-        assert {"pick_rate", "goal_rate", "both_rate", "collision_rate", "n_episodes"} <= set(coin)
-        assert coin["n_episodes"] == 4 and 0.0 <= coin["both_rate"] <= coin["pick_rate"] <= 1.0
+        for coin in [entry["gold_coin"]] + ([entry["control"]["gold_coin"]] if k else []):  # phase and control
+            assert {"pick_rate", "goal_rate", "both_rate", "collision_rate", "n_episodes"} <= set(coin)
+            assert coin["n_episodes"] == 4 and 0.0 <= coin["both_rate"] <= coin["pick_rate"] <= 1.0
         assert {"score_mean", "score_stderr", "return_mean", "n_episodes", "success_rate"} <= set(entry)
         assert entry["n_episodes"] == 3 and 0.0 <= entry["success_rate"] <= 1.0
         assert isinstance(entry["score_mean"], float) and isinstance(entry["n_episodes"], int)
@@ -143,11 +146,12 @@ def test_repro_runs_the_kuka_baseline(smoke_repo: Path) -> None:
     assert {"demonstrator_score_mean", "random_score_mean"} <= set(ref)
     phase0 = json.loads((smoke_repo / "metrics/summary.json").read_text())[KUKA]["phase_0"]
     assert phase0["n_episodes"] == 2 and 0.0 <= phase0["score_mean"] <= 100.0
-    for setup in (1, 2):
-        assert 0.0 <= phase0[f"pick_place_setup{setup}_score_mean"] <= 100.0
-    gains = _run(["adaptdiffuser", "gains"], smoke_repo)  # pick-and-place listed under the scores, per setup
-    score = phase0["pick_place_setup2_score_mean"]
-    assert f"| {KUKA} | 0 | pick_place_setup2 | {score:.1f} ± " in gains
+    place = phase0["pick_place"]  # the unseen task, evaluated by its own stage
+    assert place["n_episodes"] == 4 and 0.0 <= place["score_mean"] <= 100.0
+    setups = [place[f"setup{setup}_score_mean"] for setup in (1, 2)]
+    assert all(0.0 <= score <= 100.0 for score in setups) and place["score_mean"] == pytest.approx(np.mean(setups))
+    gains = _run(["adaptdiffuser", "gains"], smoke_repo)  # pick-and-place listed under the scores
+    assert f"| {KUKA} | 0 | pick_place | {place['score_mean']:.1f} ± " in gains
     results = pq.read_table(smoke_repo / f"results/{KUKA}/phase0/seed0/episodes.parquet").to_pydict()
     assert results["length"] == [2 * 15, 2 * 15]  # two open-loop plans of 16 states (15 steps each)
     assert (smoke_repo / f"plots/{KUKA}/phase0/seed0/plan_00.png").read_bytes()[:4] == b"\x89PNG"
@@ -172,7 +176,7 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
         ("reference", "0"),
         ("pretrain", "0"),
         ("evaluate", "0"),
-        ("evaluate-coin", "0"),
+        ("evaluate-unseen", "0"),
         ("summarize", "all"),
     } | {(stage, str(k)) for k in (1, 2) for stage in PHASE_STAGES}
     for run in runs:
@@ -189,9 +193,10 @@ def test_mlflow_records_every_stage(smoke_repo: Path) -> None:
         evaluate = by_stage["evaluate", k]
         assert "score_mean" in evaluate.data.metrics
         assert [a.path for a in client.list_artifacts(evaluate.info.run_id, "plans")] == ["plans/plan_00.png"]
-        coin = by_stage["evaluate-coin", k]
-        assert coin.data.params["alpha"] == "10.0" and "gold_coin.both_rate" in coin.data.metrics
-        assert [a.path for a in client.list_artifacts(coin.info.run_id, "gold_coin")] == ["gold_coin/coin_00.png"]
+        for stage in ("evaluate-unseen", "evaluate-unseen-control") if k != "0" else ("evaluate-unseen",):
+            coin = by_stage[stage, k]
+            assert coin.data.params["alpha"] == "10.0" and "gold_coin.both_rate" in coin.data.metrics
+            assert [a.path for a in client.list_artifacts(coin.info.run_id, "gold_coin")] == ["gold_coin/coin_00.png"]
     # a fine-tuned model's run names exactly the data that trained it
     finetune = by_stage["finetune", "2"]
     for name in ("expert", "synthetic.phase1", "synthetic.phase2"):
@@ -259,7 +264,8 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
 
     evaluations = {f"evaluate-phase0@{MAZE}", "evaluate@phase1", "evaluate@phase2"}
     evaluations |= {"evaluate-control@phase1", "evaluate-control@phase2"}
-    coin = {f"evaluate-coin-phase0@{MAZE}", "evaluate-coin@phase1", "evaluate-coin@phase2"}
+    coin = {f"evaluate-unseen-phase0@{task}" for task in (MAZE, KUKA)}
+    coin |= {f"{stage}@phase{k}" for stage in ("evaluate-unseen", "evaluate-unseen-control") for k in (1, 2)}
     try:
         # a generic evaluation key: every task's reference and evaluations (summarize follows when metrics change)
         ran = dry_run_with(lambda p: p["evaluate"].update(episodes=2))
@@ -327,8 +333,10 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path
         assert upstream[f"reference@{task}"] == {f"collect@{task}", code}
         assert upstream[f"pretrain@{task}"] == {f"collect@{task}", code}
         assert upstream[f"evaluate-phase0@{task}"] == {f"pretrain@{task}", f"reference@{task}", code}
+    for task in (MAZE, KUKA):  # the families with an unseen task
+        code = f"code@{task}"
+        assert upstream[f"evaluate-unseen-phase0@{task}"] == {f"pretrain@{task}", f"reference@{task}", code}
     code = f"code@{MAZE}"
-    assert upstream[f"evaluate-coin-phase0@{MAZE}"] == {f"pretrain@{MAZE}", f"reference@{MAZE}", code}
     for phase in params.phases:
         name = phase.name
         source = f"pretrain@{MAZE}" if phase.previous == 0 else f"finetune@phase{phase.previous}"
@@ -336,7 +344,8 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path
         assert upstream[f"discriminate@{name}"] == {f"generate@{name}", f"collect@{MAZE}", code}
         assert upstream[f"finetune@{name}"] == {f"collect@{MAZE}", source, f"discriminate@{name}", code}
         assert upstream[f"evaluate@{name}"] == {f"finetune@{name}", f"reference@{MAZE}", code}
-        assert upstream[f"evaluate-coin@{name}"] == {f"finetune@{name}", f"reference@{MAZE}", code}
+        assert upstream[f"evaluate-unseen@{name}"] == {f"finetune@{name}", f"reference@{MAZE}", code}
+        assert upstream[f"evaluate-unseen-control@{name}"] == {f"control@{name}", f"reference@{MAZE}", code}
         assert upstream[f"control@{name}"] == {f"collect@{MAZE}", source, code}
         assert upstream[f"evaluate-control@{name}"] == {
             f"control@{name}",
@@ -346,10 +355,10 @@ def test_phase_chain_in_dvc_yaml_matches_params_and_has_no_cycles(tmp_path: Path
         }
     assert upstream["summarize"] == {
         f"{stage}@{task}" for task in (MAZE, HOPPER, KUKA) for stage in ("reference", "evaluate-phase0")
-    } | {f"evaluate-coin-phase0@{MAZE}"} | {
+    } | {f"evaluate-unseen-phase0@{MAZE}", f"evaluate-unseen-phase0@{KUKA}"} | {
         f"{stage}@{name}"
         for name in params.phase_names
-        for stage in ("evaluate", "evaluate-control", "evaluate-coin", "discriminate")
+        for stage in ("evaluate", "evaluate-control", "evaluate-unseen", "evaluate-unseen-control", "discriminate")
     }
     assert upstream["report"] == {"summarize"}
 
@@ -364,7 +373,7 @@ def test_dvc_exp_run_alpha_reruns_only_what_alpha_affects(smoke_repo: Path, tmp_
     ran = {stage for stage in STAGES if f"Running stage '{stage}'" in out}
     # alpha guides coin tasks in generation and the coin evaluation; everything downstream of them follows
     assert {f"{stage}@{task}" for task in (MAZE, HOPPER, KUKA) for stage in PHASE0_STAGES}.isdisjoint(ran)
-    assert {"generate@phase1", "generate@phase2", f"evaluate-coin-phase0@{MAZE}", "evaluate-coin@phase2"} <= ran
+    assert {"generate@phase1", "generate@phase2", f"evaluate-unseen-phase0@{MAZE}", "evaluate-unseen@phase2"} <= ran
     shown = json.loads(_run(["dvc", "exp", "show", "--json"], repo))
     assert "alpha50" in json.dumps(shown) and "both_rate" in json.dumps(shown)
 

@@ -86,7 +86,7 @@ def test_the_queue_runs_two_experiments_at_once_one_of_them_the_sweeps_best_tria
     # alpha guides generation and the coin evaluation only: the queued run reused phase 0 from the cache
     log = run_tool(["dvc", "queue", "logs", "alpha30"], repo)
     ran = set(re.findall(r"Running stage '([^']+)'", log))
-    assert "generate@phase1" in ran and f"evaluate-coin-phase0@{MAZE}" in ran
+    assert "generate@phase1" in ran and f"evaluate-unseen-phase0@{MAZE}" in ran
     assert ran.isdisjoint({f"{stage}@{MAZE}" for stage in PHASE0_STAGES})
 
     # the runs executed in DVC's temporary copies and were recorded in the repository's own MLflow store
@@ -94,6 +94,6 @@ def test_the_queue_runs_two_experiments_at_once_one_of_them_the_sweeps_best_tria
     experiment = client.get_experiment_by_name(MAZE)
     for name in ("alpha30", best):  # what alpha changes directly always reruns; what follows, when its inputs change
         runs = client.search_runs([experiment.experiment_id], filter_string=f"tags.dvc_exp_name = '{name}'")
-        assert {run.data.tags["stage"] for run in runs} >= {"generate", "evaluate-coin"}, name
+        assert {run.data.tags["stage"] for run in runs} >= {"generate", "evaluate-unseen"}, name
     (parent,) = client.search_runs([experiment.experiment_id], filter_string="tags.stage = 'sweep'")
     assert parent.data.tags["dvc_experiment"] == best

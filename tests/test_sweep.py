@@ -206,13 +206,13 @@ def test_trials_run_the_stages_dvc_yaml_declares(tmp_path: Path) -> None:
     extra["do"].pop("metrics", None)
     pipeline["stages"]["evaluate-again"] = extra
     pipeline["stages"]["evaluate-control"]["do"]["deps"].append("results/${evolve}/${key}-again")
-    del pipeline["stages"]["evaluate-coin"]
+    del pipeline["stages"]["evaluate-unseen"]
     (tmp_path / "dvc.yaml").write_text(yaml.safe_dump(pipeline, sort_keys=False))
     names = [stage.name for stage in plan_trial(tmp_path, trial, "gain").phases[1].stages]
     assert names.index("evaluate@phase2") < names.index("evaluate-again@phase2")
     assert names.index("evaluate-again@phase2") < names.index("evaluate-control@phase2")
-    with pytest.raises(StageError, match="dvc.yaml has no stage evaluate-coin@phase1"):
-        plan_trial(tmp_path, trial, "coin")
+    with pytest.raises(StageError, match="dvc.yaml has no stage evaluate-unseen@phase1"):
+        plan_trial(tmp_path, trial, "unseen")
 
 
 def test_apply_changes_only_the_swept_lines_of_the_repository_params(tmp_path: Path) -> None:
@@ -360,6 +360,6 @@ def test_a_trial_sweeps_a_locomotion_task_on_its_gain_over_the_control(tmp_path:
             os.environ["MLFLOW_TRACKING_URI"] = old
     ((k, reported, metrics),) = reports
     assert k == 1 and value == reported == metrics["control"]["gain_mean"]
-    assert "gold_coin" not in metrics  # a locomotion task has no coin evaluation
+    assert "unseen" not in metrics  # the gain objective reads no unseen-task metrics
     assert (folder / model_dir(name, 1, 0, control=True)).exists()
     assert reproduce_command({"evolve": name}) == "dvc exp run -S 'evolve=hopper-medium'"

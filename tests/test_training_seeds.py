@@ -21,12 +21,12 @@ from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
-from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
+from adaptdiffuser.stages.evaluate_unseen import run_evaluate_unseen
 from adaptdiffuser.stages.finetune import run_finetune
 from adaptdiffuser.stages.generate import run_generate
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
-from adaptdiffuser.stages.report import extra_scores_table, run_report, seed_points
+from adaptdiffuser.stages.report import run_report, seed_points, unseen_table
 from adaptdiffuser.stages.summarize import run_summarize
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,7 +36,7 @@ TASK = "maze2d-umaze"
 
 def _params(root: Path, seeds: list[int]) -> Params:
     raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", root / "params.yaml").read_text())
-    raw.update(tasks=[TASK], collect_tasks=[TASK], coin_tasks=[TASK], evolve=TASK, seeds=seeds)
+    raw.update(tasks=[TASK], collect_tasks=[TASK], unseen_tasks=[TASK], evolve=TASK, seeds=seeds)
     raw["phases"] = {"phase1": {"previous": 0}}
     return params_from_dict(raw)
 
@@ -50,14 +50,15 @@ def two_seeds(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Params]:
     run_reference(params, TASK, root, progress=False)
     run_pretrain(params, TASK, root, CPU, progress=False)
     run_evaluate(params, TASK, root, 0, CPU, progress=False)
-    run_evaluate_coin(params, TASK, root, 0, CPU, progress=False)
+    run_evaluate_unseen(params, TASK, root, 0, CPU, progress=False)
     run_generate(params, TASK, root, 1, CPU, progress=False)
     run_discriminate(params, TASK, root, 1, progress=False)
     run_finetune(params, TASK, root, 1, CPU, progress=False)
     run_finetune(params, TASK, root, 1, CPU, progress=False, control=True)
     run_evaluate(params, TASK, root, 1, CPU, progress=False)
     run_evaluate(params, TASK, root, 1, CPU, progress=False, control=True)
-    run_evaluate_coin(params, TASK, root, 1, CPU, progress=False)
+    run_evaluate_unseen(params, TASK, root, 1, CPU, progress=False)
+    run_evaluate_unseen(params, TASK, root, 1, CPU, progress=False, control=True)
     return root, params
 
 
@@ -113,10 +114,13 @@ def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> No
     assert phase1["control"]["n_seeds"] == 2
     disc = phase1["discriminator"]  # each seed's counts, averaged
     assert disc["generated"] == params.phase(1).generate.tasks and 0 < disc["kept"] <= disc["tracked"]
-    coin = json.loads((root / f"metrics/tasks/{TASK}/phase1-coin.json").read_text())
+    coin = json.loads((root / f"metrics/tasks/{TASK}/phase1-unseen.json").read_text())
     rates = [coin["seeds"][s]["gold_coin"]["both_rate"] for s in ("0", "3")]
     assert phase1["gold_coin"]["both_rate"] == pytest.approx(np.mean(rates))
     assert phase1["gold_coin"]["both_rate_stderr"] == pytest.approx(standard_error(rates))
+    control_coin = json.loads((root / f"metrics/tasks/{TASK}/phase1-control-unseen.json").read_text())
+    assert summary["unseen_task"] == "gold_coin" and phase1["control"]["gold_coin"] == control_coin["gold_coin"]
+    assert control_coin["n_seeds"] == 2 and "gold_coin" not in summary["phase_0"].get("control", {})
     assert phase1["gain_mean"] == pytest.approx(np.mean([e["gain_mean"] for e in phase1["per_seed"].values()]))
     points = seed_points(summary)
     assert points["score_mean"][0] == [0, 0, 1, 1] and points["control_score_mean"][0] == [1, 1]
@@ -124,22 +128,30 @@ def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> No
     assert [r["n_seeds"] for r in rows] == [2, 2]
 
 
-def test_extra_evaluations_are_tabled_against_the_control() -> None:
-    """A family's other evaluations (``<name>_score_mean``) get one row per phase: the phase, its control and the
-    difference, whose standard error adds the two in quadrature; a task without any adds no table."""
-    place = {"place_score_mean": 30.0, "place_score_stderr": 3.0}
+def test_unseen_task_scores_are_tabled_against_the_control() -> None:
+    """A task's unseen-task scores get one row per phase: the phase, its control and the difference, whose standard
+    error adds the two in quadrature (no ``±`` where the family reports none); a task without an unseen task adds
+    no table."""
+    place = {"score_mean": 30.0, "score_stderr": 3.0}
     summary = {
         "arm": {
-            "phase_1": {"score_mean": 1.0, **place, "control": {"place_score_mean": 26.0, "place_score_stderr": 4.0}},
-            "phase_0": {"score_mean": 2.0, "place_score_mean": 20.0, "place_score_stderr": 2.0},
+            "unseen_task": "place",
+            "phase_1": {
+                "score_mean": 1.0,
+                "place": place,
+                "control": {"place": {"score_mean": 26.0, "score_stderr": 4.0}},
+            },
+            "phase_0": {"score_mean": 2.0, "place": {"score_mean": 20.0, "score_stderr": 2.0}},
         },
-        "maze": {"phase_0": {"score_mean": 80.0, "score_stderr": 1.0}},
+        "maze": {"unseen_task": "coin", "phase_0": {"score_mean": 80.0, "coin": {"score_mean": 40.0}}},
+        "hopper": {"phase_0": {"score_mean": 30.0, "score_stderr": 1.0}},
     }
-    assert extra_scores_table(summary)[2:] == [
+    assert unseen_table(summary)[2:] == [
         "| arm | 0 | place | 20.0 ± 2.0 |  |  |",
         "| arm | 1 | place | 30.0 ± 3.0 | 26.0 ± 4.0 | 4.0 ± 5.0 |",
+        "| maze | 0 | coin | 40.0 |  |  |",
     ]
-    assert extra_scores_table({"maze": summary["maze"]}) == []
+    assert unseen_table({"hopper": summary["hopper"]}) == []
 
 
 def test_over_seeds_with_one_seed_changes_nothing_but_adds_the_seed() -> None:

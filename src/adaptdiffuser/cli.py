@@ -201,28 +201,47 @@ def evaluate_control(
     )
 
 
-@app.command("evaluate-coin")
-def evaluate_coin(
+def _evaluate_unseen(params: Path, task: str | None, phase: int, device: str, progress: bool, control: bool) -> None:
+    from adaptdiffuser.family_registry import get_family
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.evaluate_unseen import run_evaluate_unseen
+
+    p = _params(params)
+    name = _task(p, task, evolution=True)
+    dev = resolve_device(device)
+    m = _guarded(lambda: run_evaluate_unseen(p, name, Path.cwd(), phase, dev, progress=progress, control=control))
+    who = f"phase {phase}{' control' if control else ''}"
+    if "skipped" in m:
+        typer.echo(f"{who}: skipped, {m['skipped']}")
+        return
+    family = get_family(p.task[name].family)
+    figures = ", ".join(f"{key} {value:.3g}" for key, value in sorted(m.items()))
+    typer.echo(f"{who}, alpha {p.alpha:g}: {family.unseen_task} objective {family.unseen_objective(m):.2f} ({figures})")
+
+
+@app.command("evaluate-unseen")
+def evaluate_unseen(
     params: ParamsPath = Path("params.yaml"),
     task: TaskOption = None,
     phase: Annotated[int, PhaseOption] = 0,
     device: Device = "auto",
     progress: Progress = True,
 ) -> None:
-    """Evaluate a phase's model on the unseen gold-coin task (guidance scale: top-level alpha)."""
-    from adaptdiffuser.stages.common import resolve_device
-    from adaptdiffuser.stages.evaluate_coin import run_evaluate_coin
+    """Evaluate a phase's model on its family's unseen task (Maze2D gold coin, KUKA pick-and-place), guided with
+    the top-level alpha."""
+    _evaluate_unseen(params, task, phase, device, progress, control=False)
 
-    p = _params(params)
-    name = _task(p, task, evolution=True)
-    gold = _guarded(lambda: run_evaluate_coin(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
-    if "skipped" in gold:
-        typer.echo(f"phase {phase}: skipped, {gold['skipped']}")
-        return
-    typer.echo(
-        f"phase {phase}, alpha {p.alpha:g}: coin both-rate {gold['both_rate']:.2f} +- {gold['both_rate_stderr']:.2f} "
-        f"(pick {gold['pick_rate']:.2f}, goal {gold['goal_rate']:.2f}, {gold['n_episodes']} cases)"
-    )
+
+@app.command("evaluate-unseen-control")
+def evaluate_unseen_control(
+    phase: EvolutionPhase,
+    params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
+    device: Device = "auto",
+    progress: Progress = True,
+) -> None:
+    """Evaluate an evolution phase's equal-compute control on the unseen task, as evaluate-unseen does the phase."""
+    _evaluate_unseen(params, task, phase, device, progress, control=True)
 
 
 @app.command()
@@ -414,19 +433,19 @@ def gains(
     ] = None,
 ) -> None:
     """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error) as a
-    Markdown table; then the other evaluations a family runs (KUKA's pick-and-place), phase against control."""
+    Markdown table; then the score on the unseen task (gold coin, pick-and-place), phase against control."""
     from adaptdiffuser.io import read_json
-    from adaptdiffuser.stages.report import extra_scores_table, gains_table
+    from adaptdiffuser.stages.report import gains_table, unseen_table
 
     merged: dict = {}
     for path in summaries or [Path("metrics/summary.json")]:
         merged |= _guarded(lambda path=path: read_json(path, f"{path} (run the summarize stage)"))
     for line in gains_table(merged):
         typer.echo(line)
-    extra = extra_scores_table(merged)
-    if extra:
+    unseen = unseen_table(merged)
+    if unseen:
         typer.echo("")
-        for line in extra:
+        for line in unseen:
             typer.echo(line)
 
 

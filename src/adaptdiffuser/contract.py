@@ -218,14 +218,13 @@ class Family(ABC):
         self, task: Any, planner: Any, alpha: float, ref: dict[str, Any], pictures: Path, title: str, progress: bool
     ) -> dict[str, float]:
         """The planner on the family's unseen task, guided with scale ``alpha`` (the top-level ``alpha``): its
-        metrics; pictures of some episodes written under ``pictures``, titled starting with ``title``; ``ref`` is
-        the task's score reference."""
+        metrics; pictures of some episodes written under ``pictures`` (an existing folder), titled starting with
+        ``title``; ``ref`` is the task's score reference."""
         raise NotImplementedError(f"family {self.name!r} has no unseen task")
 
-    def extra_evaluations(self, task: Any, planner: Any, progress: bool) -> dict[str, float]:
-        """Metrics of evaluations beside the task's score, run by the evaluate stage with the same planner (for
-        example an unseen task, guided by the task's own settings); none by default."""
-        return {}
+    def unseen_objective(self, metrics: dict[str, Any]) -> float:
+        """The one figure of :meth:`evaluate_unseen`'s metrics that a sweep maximises on the unseen task (0-100)."""
+        raise NotImplementedError(f"family {self.name!r} has no unseen task")
 
     @abstractmethod
     def save_picture(

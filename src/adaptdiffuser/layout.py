@@ -73,13 +73,14 @@ def discriminator_metrics_path(task: str, phase: int) -> Path:
     return Path(f"metrics/tasks/{task}/phase{phase}-discriminator.json")
 
 
-def coin_metrics_path(task: str, phase: int) -> Path:
-    """Gold-coin metrics of a phase over every training seed (written by its evaluate-coin stage)."""
-    return Path(f"metrics/tasks/{task}/phase{phase}-coin.json")
+def unseen_metrics_path(task: str, phase: int, control: bool = False) -> Path:
+    """Metrics of a phase (or of its control) on its family's unseen task over every training seed (written by its
+    evaluate-unseen / evaluate-unseen-control stage)."""
+    return Path(f"metrics/tasks/{task}/{phase_name(phase, control)}-unseen.json")
 
 
-def coin_plots_dir(task: str, phase: int, seed: int) -> Path:
-    return Path(f"plots/{task}/coin/phase{phase}/{seed_name(seed)}")
+def unseen_plots_dir(task: str, phase: int, seed: int, control: bool = False) -> Path:
+    return Path(f"plots/{task}/unseen/{phase_name(phase, control)}/{seed_name(seed)}")
 
 
 def generated_path(task: str, phase: int, seed: int) -> Path:

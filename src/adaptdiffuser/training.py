@@ -108,6 +108,7 @@ def train(
     progress: bool = True,
     optimizer_state: dict[str, Any] | None = None,
     compiled: bool = False,
+    on_checkpoint: Callable[[int], None] | None = None,
 ) -> list[tuple[int, float]]:
     """Train ``bundle`` in place for ``cfg.steps`` steps; resume from ``resume_path`` if it matches ``run_id``.
 
@@ -115,8 +116,11 @@ def train(
     ``optimizer_state`` (a ``bundle.optimizer`` record, see ``carried_optimizer``: the moments of these same raw
     weights, with its step count, so the bias correction continues too; this run's ``cfg.lr`` replaces the saved
     learning rate). At the end ``bundle.optimizer`` holds the Adam state. With ``compiled`` the raw network
-    runs under ``torch.compile`` (the first step compiles; weights and checkpoints as without). Returns the logged
-    ``(step, loss)`` pairs of the whole run (including those before a resume).
+    runs under ``torch.compile`` (the first step compiles; weights and checkpoints as without). ``on_checkpoint``
+    is called with the step count every ``checkpoint_every`` steps and at the end, the EMA up to date, before that
+    step's resume state is written (a run killed inside it redoes the step): a learning curve evaluates the EMA
+    there (it must not touch the raw weights). Returns the
+    logged ``(step, loss)`` pairs of the whole run (including those before a resume).
     """
     model, ema = bundle.diffusion.to(device), bundle.ema.to(device)
     model.train()
@@ -164,6 +168,8 @@ def train(
             else:
                 _update_ema(ema.model, model.model, cfg.ema_decay)
         log.step_done(done)
+        if on_checkpoint is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
+            on_checkpoint(done)
         if resume_path is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps:
             state = {
                 "run_id": run_id,

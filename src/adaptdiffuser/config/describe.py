@@ -14,10 +14,11 @@ def stage_names(params: Params) -> list[str]:
         data = f"import-data@{task}" if task in params.imports else f"collect@{task}"
         names += [data, f"reference@{task}", f"pretrain@{task}"]
         names.append(f"evaluate-phase0@{task}")
-        if task in params.coin_tasks:
-            names.append(f"evaluate-coin-phase0@{task}")
+        if task in params.unseen_tasks:
+            names.append(f"evaluate-unseen-phase0@{task}")
+    stages = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control")
+    stages += ("evaluate-unseen", "evaluate-unseen-control")
     for phase in params.phases:
-        stages = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control", "evaluate-coin")
         names += [f"{stage}@{phase.name}" for stage in stages]
     return [*names, "summarize", "report"]
 
@@ -53,12 +54,11 @@ def describe(params: Params) -> list[str]:
                 f"    + value function: {t.settings.value.steps} steps, discount {t.settings.value.discount:g}"
             )
         lines.append(f"  evaluate-phase0@{name}: {t.evaluate.episodes} episodes, {_planner(t)}")
-        if name in p.coin_tasks:
-            lines.append(
-                f"  evaluate-coin-phase0@{name}: {t.settings.gold_coin.cases_per_kind} gold-coin cases per kind"
-            )
+        if name in p.unseen_tasks:
+            lines.append(f"  evaluate-unseen-phase0@{name}: {t.settings.describe_unseen()}")
     if p.phases:
         t = p.evolved
+        unseen = t.settings.describe_unseen() if t.name in p.unseen_tasks else f"skipped ({t.name} has no unseen task)"
         for phase in p.phases:
             g, d, f = phase.generate, phase.discriminate, phase.finetune
             rule = {"paper": "paper thresholds", "quantile": f"quantile {d.quantile:g}", "top_k": f"top {d.top_k}"}
@@ -73,12 +73,8 @@ def describe(params: Params) -> list[str]:
                 f"  evaluate@{k}: {t.evaluate.episodes} episodes",
                 f"  control@{k}: the same steps from phase{phase.previous} on expert data only (equal compute)",
                 f"  evaluate-control@{k}: the control on the same episodes; gain of {k} over it",
-                f"  evaluate-coin@{k}: "
-                + (
-                    f"{t.settings.gold_coin.cases_per_kind} gold-coin cases per kind"
-                    if t.name in p.coin_tasks
-                    else f"skipped ({t.name} has no gold-coin task)"
-                ),
+                f"  evaluate-unseen@{k}: {unseen}",
+                f"  evaluate-unseen-control@{k}: the control, {unseen}",
             ]
     return [*lines, "  summarize", "  report"]
 

@@ -55,7 +55,7 @@ class Params:
     # name -> TaskParams, built from the entries
     task: dict[str, Any] = Field(default_factory=_default_tasks, validate_default=True)
     tasks: tuple[Str, ...] = (DEFAULT_TASK,)  # the tasks `dvc repro` runs: collect, reference, pretrain, evaluate
-    coin_tasks: tuple[Str, ...] = (DEFAULT_TASK,)  # those with the unseen gold-coin evaluation
+    unseen_tasks: tuple[Str, ...] = (DEFAULT_TASK,)  # those whose family has an unseen task (its evaluation)
     # the tasks of `tasks` whose data the collect stage makes (None: every task that is not imported)
     collect_tasks: tuple[Str, ...] | None = None
     imports: dict[Str, ImportParams] = field(default_factory=dict)  # task -> its external data (the import stage)
@@ -95,7 +95,7 @@ class Params:
     def _sweep_defaults(cls, value: Any) -> Any:
         return SweepParams() if value is None else value
 
-    @field_validator("tasks", "coin_tasks", mode="before")
+    @field_validator("tasks", "unseen_tasks", mode="before")
     @classmethod
     def _empty_list(cls, value: Any) -> Any:
         return () if value is None else value
@@ -159,8 +159,8 @@ class Params:
 
 
 def check_sweep(p: Params) -> None:
-    """The swept task runs evolution phases, a coin objective needs a coin task, and trials never evaluate on the
-    pipeline's evaluation episodes."""
+    """The swept task runs evolution phases, an unseen objective needs a task of ``unseen_tasks``, and trials never
+    evaluate on the pipeline's evaluation episodes."""
     s = p.sweep
     task = s.task if s.task is not None else p.evolve
     if task is None:
@@ -169,9 +169,9 @@ def check_sweep(p: Params) -> None:
         raise ConfigError(f"sweep.task: {task!r} must be one of tasks {list(p.tasks)} (its phase 0 is reused)")
     if "evolve" not in task_stages(p.task[task]):
         raise ConfigError(f"sweep.task: the {p.task[task].family} family of {task} has no evolution phases to sweep")
-    if s.objective in ("coin", "mix") and task not in p.coin_tasks:
+    if s.objective in ("unseen", "mix") and task not in p.unseen_tasks:
         raise ConfigError(
-            f"sweep.objective: {s.objective!r} needs a gold-coin task and {task} is not in coin_tasks; "
+            f"sweep.objective: {s.objective!r} needs a task with an unseen task and {task} is not in unseen_tasks; "
             "use gain or score"
         )
     if s.space and s.evaluate_seed == p.task[task].evaluate.seed:
@@ -236,22 +236,22 @@ def check_data_sources(p: Params) -> None:
 
 
 def check_task_lists(p: Params) -> None:
-    """``tasks`` names defined tasks once each; ``coin_tasks`` are exactly the tasks of ``tasks`` whose family has
-    the gold-coin evaluation; ``evolve`` is one of ``tasks``."""
+    """``tasks`` names defined tasks once each; ``unseen_tasks`` are exactly the tasks of ``tasks`` whose family has
+    an unseen task; ``evolve`` is one of ``tasks``."""
     if not p.tasks:
         raise ConfigError("tasks: must list at least one task (a key of 'task')")
-    for key in ("tasks", "coin_tasks"):
+    for key in ("tasks", "unseen_tasks"):
         names = getattr(p, key)
         for name in names:
             if name not in p.task:
                 raise ConfigError(f"{key}: {name!r} is not a task defined under 'task' (defined: {sorted(p.task)})")
         if len(set(names)) != len(names):
             raise ConfigError(f"{key}: lists a task twice: {list(names)}")
-    needs = {"coin_tasks": [n for n in p.tasks if "coin" in task_stages(p.task[n])]}
+    needs = {"unseen_tasks": [n for n in p.tasks if unseen_task_of(p.task[n]) is not None]}
     for key, expected in needs.items():
         if sorted(getattr(p, key)) != sorted(expected):
             raise ConfigError(
-                f"{key}: must list exactly the tasks of 'tasks' that need this stage: {expected}, "
+                f"{key}: must list exactly the tasks of 'tasks' whose family has an unseen task: {expected}, "
                 f"got {list(getattr(p, key))}"
             )
     if p.evolve is not None and p.evolve not in p.tasks:
@@ -266,5 +266,11 @@ def check_task_lists(p: Params) -> None:
 
 
 def task_stages(task: TaskParams) -> tuple[str, ...]:
-    """The optional stages a task's family has (``coin``, ``evolve``), declared by its task model."""
+    """The optional stages a task's family has (``evolve``), declared by its task model."""
     return tuple(getattr(task.settings, "OPTIONAL_STAGES", ()))
+
+
+def unseen_task_of(task: TaskParams) -> str | None:
+    """The name of the unseen task of a task's family (``gold_coin``, ``pick_place``), declared by its task model
+    (``UNSEEN_TASK``), or None."""
+    return getattr(task.settings, "UNSEEN_TASK", None)

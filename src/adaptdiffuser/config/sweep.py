@@ -23,7 +23,7 @@ from adaptdiffuser.config.fields import (
 )
 from adaptdiffuser.config.sections import SECTION
 
-SWEEP_OBJECTIVES = ("gain", "score", "coin", "mix")
+SWEEP_OBJECTIVES = ("gain", "score", "unseen", "mix")
 SEARCH_KINDS = ("float", "int", "categorical")
 
 
@@ -87,7 +87,7 @@ class SweepParams:
     seed: Seed = 0
     objective: Annotated[Str, one_of(*SWEEP_OBJECTIVES)] = "gain"
     evaluate_seed: Seed = 5000  # the trials' evaluation episodes: never the pipeline's (evaluate.seed)
-    coin_weight: Annotated[Float, UNIT] = 0.5
+    unseen_weight: Annotated[Float, UNIT] = 0.5
     storage: Str | None = None
     heartbeat_s: PositiveInt = 30
     pruner_startup_trials: NonNegativeInt = 1

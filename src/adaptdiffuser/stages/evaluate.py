@@ -95,7 +95,6 @@ def evaluate_seed(
             progress=progress,
         )
         metrics = summarize(result, ref["r_min"], ref["r_max"]) | family.episode_metrics(result)
-        metrics |= family.extra_evaluations(task, planner, progress)
         scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
         table = pa.table(
             {

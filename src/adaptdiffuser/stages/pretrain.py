@@ -8,9 +8,10 @@ from pathlib import Path
 import mlflow
 import torch
 
-from adaptdiffuser.checkpoint import make_bundle, save_bundle
-from adaptdiffuser.config import Params
+from adaptdiffuser.checkpoint import ModelBundle, make_bundle, save_bundle
+from adaptdiffuser.config import Params, PretrainParams, TaskParams
 from adaptdiffuser.data.normalizer import fit_normalizer
+from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import WindowDataset, joint_array
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir, phase_models_dir, seed_name
@@ -31,6 +32,33 @@ def run_pretrain(params: Params, task_name: str, root: Path, device: torch.devic
     return root / phase_models_dir(task_name, 0)
 
 
+def phase0_model(
+    task: TaskParams, traj: Trajectories, train_cfg: PretrainParams, data: dict, seed: int
+) -> tuple[ModelBundle, WindowDataset]:
+    """A fresh phase-0 model of ``task`` for training seed ``seed`` (torch seeded with ``train_cfg.seed``; the
+    family's normalizer fitted to ``traj``; ``data`` names the training data in its config) and the training
+    windows of ``traj``."""
+    family = get_family(task.family)
+    torch.manual_seed(train_cfg.seed)
+    normalizer = fit_normalizer(family.normalizer_kind, joint_array(traj))
+    meta = traj.metadata
+    bundle = make_bundle(
+        task.model,
+        task.diffusion,
+        meta["obs_dim"],
+        meta["act_dim"],
+        normalizer,
+        task=task.name,
+        family=task.family,
+        conditioning=family.conditioning,
+        phase=0,
+        seed=seed,
+        pretrain=asdict(train_cfg),
+        data=data,
+    )
+    return bundle, WindowDataset(traj, task.diffusion.horizon, normalizer)
+
+
 def pretrain_seed(
     params: Params, task_name: str, root: Path, device: torch.device, seed: int, progress: bool = True
 ) -> Path:
@@ -49,24 +77,7 @@ def pretrain_seed(
     }
     with stage_run(task.name, "pretrain", 0, logged, root, seed=seed):
         log_dataset(root / expert["path"], expert["sha256"], "training", expert["path"])
-        torch.manual_seed(train_cfg.seed)
-        normalizer = fit_normalizer(family.normalizer_kind, joint_array(traj))
-        meta = traj.metadata
-        bundle = make_bundle(
-            task.model,
-            task.diffusion,
-            meta["obs_dim"],
-            meta["act_dim"],
-            normalizer,
-            task=task.name,
-            family=task.family,
-            conditioning=family.conditioning,
-            phase=0,
-            seed=seed,
-            pretrain=asdict(train_cfg),
-            data=logged["data"],
-        )
-        dataset = WindowDataset(traj, task.diffusion.horizon, normalizer)
+        bundle, dataset = phase0_model(task, traj, train_cfg, logged["data"], seed)
         mlflow.log_metrics(
             {
                 "windows": len(dataset),

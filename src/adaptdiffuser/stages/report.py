@@ -70,23 +70,35 @@ def gains_table(summary: dict) -> list[str]:
     return lines
 
 
-def extra_scores_table(summary: dict) -> list[str]:
-    """A Markdown table of the other evaluations each phase carries (a family's ``extra_evaluations``, metrics named
-    ``<name>_score_mean`` / ``<name>_score_stderr``): the phase's, its control's and their difference, whose
-    standard error treats the two as independent (conservative when both ran on the same episodes). Empty when no
-    phase has one."""
+def _pm_or_mean(mean: float, stderr: float | None) -> str:
+    return f"{mean:.1f}" if stderr is None else _pm(mean, stderr)
+
+
+def unseen_table(summary: dict) -> list[str]:
+    """A Markdown table of every task's phases on its family's unseen task (``unseen_task`` in its summary entry):
+    the score of the phase, of its control and their difference, whose standard error treats the two as
+    independent (conservative when both ran on the same episodes); no ``±`` where a family reports no standard
+    error. Empty when no task has an unseen task."""
     lines = []
     for task, task_summary in summary.items():
+        name = task_summary.get("unseen_task")
+        if name is None:
+            continue
         for phase, entry in phase_entries(task_summary):
-            control = entry.get("control", {})
-            for name in sorted(k.removesuffix("_score_mean") for k in entry if k.endswith("_score_mean")):
-                mean, stderr = entry[f"{name}_score_mean"], entry.get(f"{name}_score_stderr", 0.0)
-                c_mean, c_stderr = control.get(f"{name}_score_mean"), control.get(f"{name}_score_stderr", 0.0)
-                diff = "" if c_mean is None else _pm(mean - c_mean, float(np.hypot(stderr, c_stderr)))
-                lines.append(f"| {task} | {phase} | {name} | {_pm(mean, stderr)} | {_pm(c_mean, c_stderr)} | {diff} |")
+            m, c = entry[name], entry.get("control", {}).get(name)
+            diff = ""
+            if c is not None:
+                stderrs = (m.get("score_stderr"), c.get("score_stderr"))
+                stderr = None if None in stderrs else float(np.hypot(*stderrs))
+                diff = _pm_or_mean(m["score_mean"] - c["score_mean"], stderr)
+            control = "" if c is None else _pm_or_mean(c["score_mean"], c.get("score_stderr"))
+            lines.append(
+                f"| {task} | {phase} | {name} | {_pm_or_mean(m['score_mean'], m.get('score_stderr'))} | {control} "
+                f"| {diff} |"
+            )
     if not lines:
         return []
-    header = ["| task | phase | evaluation | score | control | difference |", "|---|---|---|---|---|---|"]
+    header = ["| task | phase | unseen task | score | control | difference |", "|---|---|---|---|---|---|"]
     return header + lines
 
 

@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import mlflow
 
 from adaptdiffuser.config import Params
+from adaptdiffuser.config.params import unseen_task_of
 from adaptdiffuser.io import read_json, write_json
 from adaptdiffuser.layout import (
     SUMMARY,
-    coin_metrics_path,
     discriminator_metrics_path,
     phase_metrics_path,
     reference_path,
+    unseen_metrics_path,
 )
 from adaptdiffuser.stages.common import phase_entries
 from adaptdiffuser.tooling.mlflow_logging import set_best_alias, stage_run
@@ -40,31 +42,41 @@ def _per_seed(metrics: dict, control: dict | None) -> dict[str, dict]:
     return out
 
 
+def _unseen(root: Path, task: str, phase: int, unseen: str, control: bool) -> dict:
+    """A phase's (or its control's) metrics on the unseen task ``unseen``, mean over training seeds."""
+    who = f"{task} phase {phase}" + ("'s control" if control else "")
+    return read_json(root / unseen_metrics_path(task, phase, control), f"{unseen} metrics of {who}")[unseen]
+
+
 def task_phases(params: Params, task: str) -> list[int]:
     """The phases a task is evaluated at: 0, and 1..K for the evolved task."""
     return [0, *(phase.index for phase in params.phases)] if task == params.evolve else [0]
 
 
 def run_summarize(params: Params, root: Path) -> dict:
-    """``{task: {"dataset": {...}?, "phase_k": {score_mean, score_stderr, ..., gain_mean?, gain_stderr?,
-    "control"?, "discriminator"?, "per_seed"}}}``: each phase's evaluation metrics, its gold-coin metrics where the
-    task has them; for evolution phases the discriminator counts, the equal-compute control's metrics and the gain
-    of the phase over it; and the dataset's own score where the reference stage measured it.
+    """``{task: {"dataset": {...}?, "unseen_task"?, "phase_k": {score_mean, score_stderr, ..., gain_mean?,
+    gain_stderr?, <unseen task>?, "control"?, "discriminator"?, "per_seed"}}}``: each phase's evaluation metrics;
+    for tasks of ``unseen_tasks``, the name of their family's unseen task (``gold_coin``, ``pick_place``) and each
+    phase's (and control's) metrics on it under that name; for evolution phases the discriminator counts, the
+    equal-compute control's metrics and the gain of the phase over it; and the dataset's own score where the
+    reference stage measured it.
 
     Means and standard errors are over training seeds (over episodes with one seed: ``stderr_over``); the
     discriminator counts are means over seeds; ``per_seed`` has each seed's score and gain."""
     summary: dict[str, dict] = {}
     for task in params.tasks:
-        entry: dict[str, dict] = {}
+        entry: dict[str, Any] = {}
         ref = read_json(root / reference_path(task), f"reference of {task} (run reference@{task})")
         if "dataset" in ref:
             entry["dataset"] = ref["dataset"]
+        unseen = unseen_task_of(params.task[task]) if task in params.unseen_tasks else None
+        if unseen is not None:
+            entry["unseen_task"] = unseen
         for k in task_phases(params, task):
             metrics = read_json(root / phase_metrics_path(task, k), f"metrics of {task} phase {k} (run its evaluate)")
             phase = _without_seeds(metrics)
-            if task in params.coin_tasks:
-                coin = read_json(root / coin_metrics_path(task, k), f"gold-coin metrics of {task} phase {k}")
-                phase["gold_coin"] = coin["gold_coin"]
+            if unseen is not None:
+                phase[unseen] = _unseen(root, task, k, unseen, control=False)
             control = None
             if k > 0:
                 report = read_json(root / discriminator_metrics_path(task, k), f"discriminator report of phase {k}")
@@ -77,6 +89,8 @@ def run_summarize(params: Params, root: Path) -> dict:
                 phase["control"] = {
                     key: value for key, value in _without_seeds(control).items() if not key.startswith("gain_")
                 }
+                if unseen is not None:
+                    phase["control"][unseen] = _unseen(root, task, k, unseen, control=True)
             phase["per_seed"] = _per_seed(metrics, control)
             entry[f"phase_{k}"] = phase
         summary[task] = entry

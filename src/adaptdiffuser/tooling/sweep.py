@@ -1,7 +1,7 @@
 """Optuna sweep over params (alpha, discriminator thresholds, ...) declared in ``params.yaml``'s ``sweep`` section.
 
 Each trial reruns the evolution phases of the swept task (``sweep.task``, default ``evolve``: generate,
-discriminate, fine-tune, evaluate, and the equal-compute control or the gold-coin evaluation when the objective
+discriminate, fine-tune, evaluate, and the equal-compute control or the unseen-task evaluation when the objective
 needs them) for every training seed, in its own folder ``sweeps/<study>/trial_<n>/``, with the stage commands of
 ``dvc.yaml`` (see :mod:`adaptdiffuser.tooling.sweep_trials`), reusing the project's cached data, reference scores and
 phase-0 models (a search key that would change those is refused), and reports its objective after every phase so
@@ -153,8 +153,11 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
             if "control" in metrics:
                 client.log_metric(run_id, "control.score_mean", metrics["control"]["score_mean"], step=k)
                 client.log_metric(run_id, "gain_mean", metrics["control"]["gain_mean"], step=k)
-            if "gold_coin" in metrics:
-                client.log_metric(run_id, "gold_coin.both_rate", metrics["gold_coin"]["both_rate"], step=k)
+            if "unseen" in metrics and "skipped" not in metrics["unseen"]:
+                unseen = {k: v for k, v in metrics["unseen"].items() if k not in ("n_seeds", "seeds", "stderr_over")}
+                for name, figures in unseen.items():  # {<unseen task>: {metric: value}}
+                    for key, value in figures.items():
+                        client.log_metric(run_id, f"{name}.{key}", value, step=k)
             trial.report(value, k)
             if trial.should_prune():
                 raise optuna.TrialPruned(f"phase {k}: objective {value:.2f} is below the running median")

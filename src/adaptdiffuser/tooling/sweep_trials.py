@@ -1,7 +1,7 @@
 """One sweep trial: the evolution stages of ``dvc.yaml`` run in the trial's own folder with the trial's params.
 
 A trial runs the stages of each phase that its objective needs (``evaluate@phase<k>``, plus ``evaluate-control``
-for ``gain`` or ``evaluate-coin`` for ``coin``/``mix``, and everything they depend on within the phase chain), with
+for ``gain`` or ``evaluate-unseen`` for ``unseen``/``mix``, and everything they depend on within the phase chain), with
 the exact commands DVC would run, and reads the objective from the metrics files those stages declare. Every other
 stage they depend on (collect, reference, pretrain) is reused from the project's last ``dvc repro``: a search key
 that would change one of those is refused before any trial starts, naming the key and the stage.
@@ -28,10 +28,10 @@ from adaptdiffuser.tooling.dvc_stages import DvcStage, key_touches, resolve_stag
 OBJECTIVE_STAGES: dict[str, tuple[str, ...]] = {
     "score": ("evaluate",),
     "gain": ("evaluate", "evaluate-control"),
-    "coin": ("evaluate", "evaluate-coin"),
-    "mix": ("evaluate", "evaluate-coin"),
+    "unseen": ("evaluate", "evaluate-unseen"),
+    "mix": ("evaluate", "evaluate-unseen"),
 }
-METRICS_KEY = {"evaluate": "evaluate", "evaluate-control": "control", "evaluate-coin": "gold_coin"}
+METRICS_KEY = {"evaluate": "evaluate", "evaluate-control": "control", "evaluate-unseen": "unseen"}
 
 
 def swept_task(params: Params) -> str:
@@ -42,19 +42,36 @@ def swept_task(params: Params) -> str:
     return task
 
 
-def objective_value(sweep: SweepParams, metrics: dict[str, dict]) -> float:
-    """The sweep's score of one evaluated phase from its ``evaluate`` metrics (and ``control`` or ``gold_coin``
+def objective_value(
+    sweep: SweepParams, metrics: dict[str, dict], unseen_objective: Callable[[dict], float] | None = None
+) -> float:
+    """The sweep's score of one evaluated phase from its metrics files (``evaluate``, and ``control`` or ``unseen``
     where the objective needs them): ``gain`` = score - control score (paired, mean over seeds), ``score`` =
-    normalized score, ``coin`` = 100 x coin both-rate, ``mix`` = (1 - coin_weight) x score + coin_weight x coin."""
+    normalized score, ``unseen`` = ``unseen_objective`` of the unseen-task metrics (the family's figure, 0-100: the
+    Maze2D gold coin's 100 x both-rate, KUKA's pick-and-place score), ``mix`` = (1 - unseen_weight) x score +
+    unseen_weight x that."""
     if sweep.objective == "gain":
         return float(metrics["control"]["gain_mean"])
     score = float(metrics["evaluate"]["score_mean"])
     if sweep.objective == "score":
         return score
-    coin = 100.0 * float(metrics["gold_coin"]["both_rate"])
-    if sweep.objective == "coin":
-        return coin
-    return (1.0 - sweep.coin_weight) * score + sweep.coin_weight * coin
+    if unseen_objective is None:
+        raise StageError(f"sweep.objective {sweep.objective!r}: the swept task has no unseen task")
+    unseen = unseen_objective(metrics["unseen"])
+    if sweep.objective == "unseen":
+        return unseen
+    return (1.0 - sweep.unseen_weight) * score + sweep.unseen_weight * unseen
+
+
+def family_unseen_objective(params: Params) -> Callable[[dict], float] | None:
+    """The swept task's figure of its unseen-task metrics file (``{<unseen task>: metrics, ...}``), or None when its
+    family has no unseen task."""
+    from adaptdiffuser.family_registry import get_family
+
+    family = get_family(params.task[swept_task(params)].family)
+    if family.unseen_task is None:
+        return None
+    return lambda metrics: family.unseen_objective(metrics[family.unseen_task])
 
 
 def trial_raw(raw: dict[str, Any], values: dict[str, Any]) -> dict[str, Any]:
@@ -171,6 +188,7 @@ def run_trial(
     from adaptdiffuser.tooling.mlflow_logging import tracking_uri
 
     plan = plan_trial(root, raw, sweep.objective)
+    unseen_objective = family_unseen_objective(params_from_dict(raw))
     trial_dir.mkdir(parents=True, exist_ok=True)
     with atomic_path(trial_dir / "params.yaml") as tmp:
         tmp.write_text(yaml.safe_dump(raw, sort_keys=False))
@@ -183,7 +201,7 @@ def run_trial(
         for stage in phase.stages:
             run_stage_command(stage, trial_dir, env)
         metrics = {key: read_json(trial_dir / path, f"{key} metrics") for key, path in phase.metrics.items()}
-        value = objective_value(sweep, metrics)
+        value = objective_value(sweep, metrics, unseen_objective)
         report(phase.index, value, metrics)
     return value
 

@@ -57,13 +57,14 @@ def generate_episodes(
     task: TaskParams,
     planner: Any,
     cfg: GenerateParams,
+    alpha: float,
     seed: int,
     generator: dict[str, Any],
     progress: bool,
 ) -> tuple[Trajectories, dict[str, float]]:
-    """``cfg.tasks`` guided pick-and-place episodes (task ``i`` starts from the scene drawn with ``(seed, i)`` in
-    setup :func:`setup_of_tasks`), batched by ``cfg.batch_size``. Row ``t`` of an episode is the state planned for
-    step ``t`` (row 0: the start); the reward column is zero (unknown until executed)."""
+    """``cfg.tasks`` pick-and-place episodes guided with scale ``alpha`` (task ``i`` starts from the scene drawn with
+    ``(seed, i)`` in setup :func:`setup_of_tasks`), batched by ``cfg.batch_size``. Row ``t`` of an episode is the
+    state planned for step ``t`` (row 0: the start); the reward column is zero (unknown until executed)."""
     p = task.settings.pick_place
     first = int(p.guide_from * planner.horizon)
     setups = setup_of_tasks(cfg.tasks, p.setups)
@@ -73,7 +74,7 @@ def generate_episodes(
         tasks = np.flatnonzero(setups == setup)
         if not len(tasks):
             continue
-        guidance = place_guidance(planner, p.alpha, first)
+        guidance = place_guidance(planner, alpha, first)
         controller = ReplanningController(planner, derive_seed(seed, setup), guidance, record=True)
         offset = int(tasks[0])
         result = run_episodes(

@@ -13,6 +13,7 @@ from adaptdiffuser.config import TaskParams
 from adaptdiffuser.contract import Controller, EpisodeBatchResult, Family, TaskFiles
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.evaluation import RandomController, normalized_score, run_episodes, standard_error
+from adaptdiffuser.families.kuka.params import KukaTaskParams
 from adaptdiffuser.families.kuka.scene import N_BLOCKS
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 
@@ -80,15 +81,20 @@ class KukaFamily(Family):
 
         return ReplanningController(planner, task.evaluate.seed)
 
-    def extra_evaluations(self, task: TaskParams, planner: Any, progress: bool) -> dict[str, float]:
-        """Pick-and-place (unseen) for each setup, guided with ``pick_place.alpha``: score = blocks placed / 4 x 100."""
+    unseen_task = KukaTaskParams.UNSEEN_TASK
+
+    def evaluate_unseen(self, task, planner, alpha, ref, pictures, title, progress):
+        """Pick-and-place (no demonstrations) in each setup of ``pick_place.setups``, guided with scale ``alpha``:
+        score = blocks placed / 4 x 100, over all episodes (``score_*``) and per setup (``setup<k>_score_*``). No
+        pictures."""
         from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance
 
         p = task.settings.pick_place
         first = int(p.guide_from * planner.horizon)
         metrics: dict[str, float] = {}
+        every: list[np.ndarray] = []
         for setup in p.setups:
-            controller = ReplanningController(planner, p.seed, place_guidance(planner, p.alpha, first))
+            controller = ReplanningController(planner, p.seed, place_guidance(planner, alpha, first))
             result = run_episodes(
                 lambda setup=setup: self.make_simulator(task, "pick_place", setup),
                 controller,
@@ -99,16 +105,22 @@ class KukaFamily(Family):
                 progress=progress,
             )
             scores = normalized_score(np.asarray(result.returns), 0.0, float(N_BLOCKS))
-            metrics[f"pick_place_setup{setup}_score_mean"] = float(np.mean(scores))
-            metrics[f"pick_place_setup{setup}_score_stderr"] = standard_error(scores)
-        return metrics
+            metrics[f"setup{setup}_score_mean"] = float(np.mean(scores))
+            metrics[f"setup{setup}_score_stderr"] = standard_error(scores)
+            every.append(scores)
+        scores = np.concatenate(every)
+        return {"score_mean": float(np.mean(scores)), "score_stderr": standard_error(scores),
+                "n_episodes": int(len(scores)), **metrics}  # fmt: skip
+
+    def unseen_objective(self, metrics: dict[str, Any]) -> float:
+        """The pick-and-place score over every setup's episodes."""
+        return float(metrics["score_mean"])
 
     def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
-        """Guided pick-and-place episodes from both setups (scale ``pick_place.alpha``, the evaluation's; the
-        top-level ``alpha`` guides maze coins only)."""
+        """Pick-and-place episodes from both setups, guided with scale ``alpha`` (as the unseen evaluation)."""
         from adaptdiffuser.families.kuka.evolution import generate_episodes
 
-        return generate_episodes(self.make_simulator, task, planner, cfg, seed, generator, progress)
+        return generate_episodes(self.make_simulator, task, planner, cfg, alpha, seed, generator, progress)
 
     def discriminate(self, task, generated, cfg, phase, files, progress):
         """Execute each episode's plans; reject drift of joints and flags, and states outside the stacking data's

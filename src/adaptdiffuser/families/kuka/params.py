@@ -88,8 +88,6 @@ class PickPlaceSettings(BaseModel):
     replans: int = Field(4, gt=0)
     episodes: int = Field(20, gt=0)
     seed: int = Field(3000, ge=0)
-    #: guidance scale toward the targets (the task's own: its objective is in metres, the maze coin's in cells)
-    alpha: float = Field(10.0, ge=0)
     #: the guidance pulls the chosen block over plan steps from this fraction of the horizon on (reference: half)
     guide_from: float = Field(0.5, ge=0, lt=1)
     batch_size: int = Field(20, gt=0)
@@ -111,6 +109,8 @@ class KukaTaskParams(BaseModel):
 
     model_config = Frozen
     OPTIONAL_STAGES: ClassVar[tuple[str, ...]] = ("evolve",)
+    #: the family's unseen task: its evaluate-unseen stages run, its settings are the section of this name
+    UNSEEN_TASK: ClassVar[str] = "pick_place"
 
     family: Literal["kuka"] = "kuka"
     scene: SceneSettings = Field(default_factory=SceneSettings)
@@ -125,6 +125,11 @@ class KukaTaskParams(BaseModel):
     def describe_data(self) -> str:
         """The collect stage's recipe, one line (``adaptdiffuser check``)."""
         return f"{self.collect.episodes} scripted stacking demonstrations (seed {self.collect.seed})"
+
+    def describe_unseen(self) -> str:
+        """The unseen task's evaluation, one line (``adaptdiffuser check``)."""
+        p = self.pick_place
+        return f"pick-and-place, {p.episodes} episodes in each of setups {p.setups}"
 
     def check_name(self, name: str) -> None:
         if name not in TASK_NAMES:

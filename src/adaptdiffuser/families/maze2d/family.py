@@ -13,6 +13,7 @@ from adaptdiffuser.contract import Controller, EpisodeBatchResult, Family, TaskF
 from adaptdiffuser.data.schema import Trajectories, make_metadata
 from adaptdiffuser.evaluation import RandomController, run_episodes, standard_error
 from adaptdiffuser.families.maze2d.expert import ExpertController, collect_expert_stream
+from adaptdiffuser.families.maze2d.params import Maze2DTaskParams
 from adaptdiffuser.families.maze2d.simulator import Maze2D, resolve_layout
 from adaptdiffuser.plots import save_plan_picture
 
@@ -29,7 +30,7 @@ class Maze2DFamily(Family):
     name = "maze2d"
     conditioning = "start_goal"
     normalizer_kind = "minmax"
-    unseen_task = "gold_coin"
+    unseen_task = Maze2DTaskParams.UNSEEN_TASK
 
     def make_simulator(self, task: TaskParams) -> Maze2D:
         """A fresh simulator: protocol from ``env``, expert gains from ``expert``, plan-follower gains from
@@ -104,6 +105,10 @@ class Maze2DFamily(Family):
 
         make_env = lambda: self.make_simulator(task)  # noqa: E731
         return evaluate_gold_coin(make_env, task, planner, alpha, ref, pictures, title, progress)
+
+    def unseen_objective(self, metrics: dict[str, Any]) -> float:
+        """100 x the share of cases that pick the coin and reach the goal."""
+        return 100.0 * float(metrics["both_rate"])
 
     def selection_rule(self, task: TaskParams, cfg: DiscriminateParams) -> SelectionRule:
         """The discriminator's rule for the navigation tasks of ``task``'s evolution: under ``rule: paper`` the

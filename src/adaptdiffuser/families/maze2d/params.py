@@ -105,7 +105,9 @@ class Maze2DTaskParams:
     """A Maze2D task: the maze and its protocol (``env``), the waypoint expert, data collection and the unseen
     gold-coin evaluation."""
 
-    OPTIONAL_STAGES: ClassVar[tuple[str, ...]] = ("coin", "evolve")
+    OPTIONAL_STAGES: ClassVar[tuple[str, ...]] = ("evolve",)
+    #: the family's unseen task: its evaluate-unseen stages run, its settings are the section of this name
+    UNSEEN_TASK: ClassVar[str] = "gold_coin"
 
     family: Literal["maze2d"] = "maze2d"
     env: EnvParams = field(default_factory=EnvParams)
@@ -117,6 +119,10 @@ class Maze2DTaskParams:
     def describe_data(self) -> str:
         """The collect stage's recipe, one line (``adaptdiffuser check``)."""
         return f"{self.collect.steps} expert steps (seed {self.collect.seed})"
+
+    def describe_unseen(self) -> str:
+        """The unseen task's evaluation, one line (``adaptdiffuser check``)."""
+        return f"{self.gold_coin.cases_per_kind} gold-coin cases per kind"
 
     @property
     def maze_name(self) -> str:

@@ -1,0 +1,116 @@
+"""Score against training steps and CPU time of a task's phase-0 model (printed and written, never asserted): how many
+steps a profile needs before its Diffuser baseline is worth evolving, chosen on validation episodes.
+
+Trains the task's phase-0 model exactly as ``pretrain@<task>`` does (its model, diffusion and pretrain settings, for
+one training seed) up to ``--steps``, and every ``--every`` steps evaluates the EMA under the task's protocol on
+``--episodes`` episodes from ``--seed`` (default 7: a validation seed, never ``evaluate.seed``). Each point goes to
+``--out`` (JSON lines: step, score mean and standard error, success rate where the family reports it, training
+seconds so far, evaluation seconds) as soon as it is measured. Stopped at any point, the same command continues
+from the last point: training resumes from its state in ``models/.resume/`` and the points already written are
+kept. For families whose planner needs no value function (Maze2D, KUKA).
+
+    python benchmarks/learning_curve.py WORKSPACE --task maze2d-medium --steps 40000 --every 4000
+        [--seed 7] [--episodes 30] [--training-seed 0] [--out curve.jsonl] [--device cpu]
+
+WORKSPACE is a pipeline folder whose task has its dataset and reference (`dvc repro reference@<task>`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from adaptdiffuser.config import params_from_dict, set_dotted
+from adaptdiffuser.contract import TaskFiles
+from adaptdiffuser.diffusion.samplers import make_sampler
+from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.io import read_json
+from adaptdiffuser.layout import reference_path
+from adaptdiffuser.planning import Planner
+from adaptdiffuser.stages.common import resolve_device
+from adaptdiffuser.stages.pretrain import phase0_model
+from adaptdiffuser.stages.training_data import expert_training_data, pretrain_config
+from adaptdiffuser.training import fingerprint, train
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("workspace", type=Path)
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--steps", type=int, required=True, help="training steps in all")
+    parser.add_argument("--every", type=int, required=True, help="steps between evaluations (and resume states)")
+    parser.add_argument("--seed", type=int, default=7, help="episode seed (default 7: validation, not evaluation)")
+    parser.add_argument("--episodes", type=int, default=30)
+    parser.add_argument("--training-seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=None, help="default: learning_curve-<task>-seed<s>.jsonl")
+    parser.add_argument("--device", default="auto")
+    args = parser.parse_args()
+    root = args.workspace.resolve()
+    raw = yaml.safe_load((root / "params.yaml").read_text())
+    if args.seed == params_from_dict(raw).resolve(args.task).evaluate.seed:
+        parser.error(f"--seed {args.seed} is the task's evaluation seed: choose settings on other episodes")
+    raw = set_dotted(raw, f"task.{args.task}.evaluate.seed", args.seed)
+    raw = set_dotted(raw, f"task.{args.task}.evaluate.episodes", args.episodes)
+    params = params_from_dict(raw)
+    task = params.resolve(args.task)
+    family = get_family(task.family)
+    if family.uses_value_function:
+        parser.error(f"{task.name}: the {task.family} planner needs a value function, which this curve does not train")
+    device = resolve_device(args.device)
+    ref = read_json(root / reference_path(task.name), f"reference of {task.name} (dvc repro reference@{task.name})")
+    out = args.out or root / f"learning_curve-{task.name}-seed{args.training_seed}.jsonl"
+    points = [json.loads(line) for line in out.read_text().splitlines()] if out.exists() else []
+    done = {point["step"] for point in points}
+
+    traj, expert = expert_training_data(task, root, args.training_seed)
+    cfg = dataclasses.replace(pretrain_config(task, args.training_seed), steps=args.steps, checkpoint_every=args.every)
+    bundle, dataset = phase0_model(task, traj, cfg, {"expert": expert}, args.training_seed)
+    run_id = fingerprint(task.section("model"), task.section("diffusion"), dataclasses.asdict(cfg), expert)
+    resume = root / "models" / ".resume" / f"learning-curve-{task.name}-seed{args.training_seed}.pt"
+    resume.parent.mkdir(parents=True, exist_ok=True)
+    ev, pl = task.evaluate, task.planner
+    print(
+        f"{task.name}: {cfg.steps} steps, evaluated every {args.every} on {ev.episodes} episodes from seed {ev.seed}; "
+        f"model dim {task.model.dim} x {task.model.dim_mults}, horizon {task.diffusion.horizon}, {pl.sampler} "
+        f"{pl.sampler_steps}; torch threads {torch.get_num_threads()}; writing {out}",
+        flush=True,
+    )
+    clock = {"train_s": points[-1]["train_s"] if points else 0.0, "since": time.perf_counter()}
+
+    def evaluate(step: int) -> None:
+        clock["train_s"] += time.perf_counter() - clock["since"]
+        if step not in done:
+            start = time.perf_counter()
+            planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
+            result = run_episodes(
+                lambda: family.make_simulator(task),
+                family.controller(task, planner, TaskFiles(root, task.name, None, args.training_seed), device),
+                ev.episodes,
+                ev.seed,
+                ev.batch_size,
+                progress=False,
+            )
+            scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
+            point = {"step": step, "score_mean": float(scores.mean()), "score_stderr": standard_error(scores),
+                     **family.episode_metrics(result), "train_s": round(clock["train_s"], 1),
+                     "eval_s": round(time.perf_counter() - start, 1)}  # fmt: skip
+            with open(out, "a") as f:
+                f.write(json.dumps(point) + "\n")
+            print(json.dumps(point), flush=True)
+        clock["since"] = time.perf_counter()
+
+    train(bundle, dataset, cfg, device, resume, run_id, progress=False, compiled=params.compile.training,
+          on_checkpoint=evaluate)  # fmt: skip
+    resume.unlink(missing_ok=True)
+
+
+if __name__ == "__main__":
+    main()

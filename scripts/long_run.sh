@@ -1,0 +1,106 @@
+#!/usr/bin/env bash
+# Long runs (the science profiles: hours to days on 2 CPU cores) in their own clone pinned to a commit, so that work
+# on this repository cannot make them stale; the same one command continues a run after any interruption.
+#
+#   bash scripts/long_run.sh start FOLDER [--profile NAME] [--commit REV] [--from REPO] [--venv VENV] [--foreground]
+#       clone REPO (default: this repository) at REV (default: its HEAD) into FOLDER, install it there (or use VENV's
+#       packages with FOLDER/src first on PYTHONPATH), switch to profile NAME (default: the commit's params.yaml)
+#       and start `dvc repro` in the background (log: FOLDER/long_run.log)
+#   bash scripts/long_run.sh resume FOLDER [--foreground]
+#       continue where it stopped: DVC skips the stages that finished, training resumes from its last checkpoint
+#       (models/.resume/), the other stages rerun from their start (minutes at most)
+#   bash scripts/long_run.sh status FOLDER
+#       the pinned commit, whether it runs, the stages left, the resume states and the log's last lines
+set -euo pipefail
+here="$(cd "$(dirname "$0")/.." && pwd)"
+
+usage() { sed -n '4,13p' "$0" >&2; exit 2; }
+die() { echo "long_run: $*" >&2; exit 2; }
+
+[ $# -ge 2 ] || usage
+action=$1
+folder=$(realpath -m "$2")
+shift 2
+profile="" commit="HEAD" source="$here" venv="" foreground=0
+while [ $# -gt 0 ]; do
+  case $1 in
+    --profile) profile=$2; shift 2 ;;
+    --commit) commit=$2; shift 2 ;;
+    --from) source=$2; shift 2 ;;
+    --venv) venv=$(realpath "$2"); shift 2 ;;
+    --foreground) foreground=1; shift ;;
+    *) die "unknown option $1" ;;
+  esac
+done
+
+running_pid() {  # the pid of the run in FOLDER if it is alive
+  [ -f "$folder/long_run.pid" ] || return 1
+  local pid
+  pid=$(cat "$folder/long_run.pid")
+  kill -0 "$pid" 2>/dev/null && echo "$pid"
+}
+
+environment() {  # the run's tools: the clone's own .venv, or VENV's with the clone's sources first
+  # shellcheck disable=SC1091
+  source "$folder/.long_run.env"
+  if [ -n "$LONG_RUN_VENV" ]; then
+    export PATH="$LONG_RUN_VENV/bin:$PATH" PYTHONPATH="$folder/src${PYTHONPATH:+:$PYTHONPATH}"
+  else
+    export PATH="$folder/.venv/bin:$PATH"
+  fi
+  export DVC_NO_ANALYTICS=1
+  unset MLFLOW_TRACKING_URI
+}
+
+launch() {
+  if pid=$(running_pid); then die "$folder is already running (pid $pid)"; fi
+  environment
+  cd "$folder"
+  echo "== $(date -u +%FT%TZ) dvc repro at $(git rev-parse --short HEAD)" >> long_run.log
+  if [ "$foreground" = 1 ]; then
+    echo $$ > long_run.pid
+    dvc repro >> long_run.log 2>&1 || die "dvc repro failed: see $folder/long_run.log"
+  else
+    setsid nohup dvc repro >> long_run.log 2>&1 < /dev/null &
+    echo $! > long_run.pid
+    echo "running in the background (pid $!): bash scripts/long_run.sh status $folder"
+  fi
+}
+
+case $action in
+  start)
+    [ ! -e "$folder" ] || die "$folder exists: continue it with 'bash scripts/long_run.sh resume $folder'"
+    rev=$(git -C "$source" rev-parse --verify "$commit^{commit}") || die "no commit $commit in $source"
+    git clone -q "$source" "$folder"
+    git -C "$folder" checkout -q "$rev"
+    printf 'long_run.log\nlong_run.pid\n.long_run.env\n' >> "$folder/.git/info/exclude"
+    printf 'LONG_RUN_VENV=%q\nLONG_RUN_PROFILE=%q\n' "$venv" "${profile:-params.yaml of the commit}" > "$folder/.long_run.env"
+    if [ -z "$venv" ]; then (cd "$folder" && bash scripts/setup.sh); fi
+    if [ -n "$profile" ]; then (environment && cd "$folder" && adaptdiffuser profile "$profile"); fi
+    echo "pinned $folder at $rev"
+    launch
+    ;;
+  resume)
+    [ -f "$folder/.long_run.env" ] || die "$folder is not a long run (start one with 'long_run.sh start')"
+    launch
+    ;;
+  status)
+    [ -f "$folder/.long_run.env" ] || die "$folder is not a long run"
+    environment
+    cd "$folder"
+    echo "commit: $(git log -1 --format='%h %s' | cut -c1-100)"
+    echo "profile: $LONG_RUN_PROFILE"
+    total=$(dvc stage list --name-only | wc -l)
+    if pid=$(running_pid); then
+      # DVC holds the repository's lock while it runs: the stages it started, from its log
+      started=$(grep -c "^Running stage" long_run.log || true)
+      echo "running: pid $pid; $total stages, $started started by this run's log, the last: $(grep "^Running stage" long_run.log | tail -n 1)"
+    else
+      left=$(dvc status --json | python -c 'import json, sys; print(len(json.load(sys.stdin)))')
+      echo "not running: $((total - left)) of $total stages done, $left left (continue: bash scripts/long_run.sh resume $folder)"
+    fi
+    ls models/.resume/ 2>/dev/null | sed 's/^/resume state: /' || true
+    tail -n 5 long_run.log 2>/dev/null | sed 's/^/log: /' || true
+    ;;
+  *) usage ;;
+esac

@@ -1,0 +1,58 @@
+"""scripts/long_run.sh: a run in its own clone pinned to a commit, killed part-way, continued by one command."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+from smoke_project import REPO, make_smoke_project, run_tool
+
+SCRIPT = str(REPO / "scripts" / "long_run.sh")
+MAZE = "maze2d-umaze"
+
+
+def _phase0_of_one_task(path: Path) -> None:
+    """Phase 0 of the maze task alone, with a pretraining long enough to be killed between its checkpoints."""
+    raw = yaml.safe_load(path.read_text())
+    raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={})
+    raw["pretrain"] |= {"steps": 600, "checkpoint_every": 100}
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+
+
+@pytest.mark.e2e
+def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
+    project = make_smoke_project(tmp_path / "project", run_tool, edit=_phase0_of_one_task)
+    head = run_tool(["git", "rev-parse", "HEAD"], project).strip()
+    run_tool(["git", "commit", "-q", "--allow-empty", "-m", "later work"], project)  # the run stays on `head`
+    folder = tmp_path / "run"
+    venv = ["--venv", sys.prefix]
+    out = run_tool(["bash", SCRIPT, "start", str(folder), "--from", str(project), "--commit", head, *venv], tmp_path)
+    assert f"pinned {folder} at {head}" in out
+    pid = int((folder / "long_run.pid").read_text())
+    deadline = time.monotonic() + 600
+    resume = folder / "models" / ".resume"
+    while not (resume.is_dir() and any(resume.iterdir())):  # pretraining wrote a resume state: kill the run there
+        assert time.monotonic() < deadline, (folder / "long_run.log").read_text()
+        time.sleep(0.2)
+    os.killpg(pid, signal.SIGKILL)
+    while subprocess.run(["kill", "-0", str(pid)], capture_output=True).returncode == 0:
+        time.sleep(0.1)
+
+    status = run_tool(["bash", SCRIPT, "status", str(folder)], tmp_path)
+    assert f"commit: {head[:7]}" in status and "not running" in status and "resume state:" in status
+    refused = subprocess.run(["bash", SCRIPT, "start", str(folder)], capture_output=True, text=True)
+    assert refused.returncode == 2 and "exists: continue it with" in refused.stderr
+
+    run_tool(["bash", SCRIPT, "resume", str(folder), "--foreground"], tmp_path)
+    log = (folder / "long_run.log").read_text()
+    assert "resuming training from step" in log  # pretraining went on from its checkpoint, not from step 0
+    status = run_tool(["bash", SCRIPT, "status", str(folder)], tmp_path)
+    assert "0 left" in status and "resume state:" not in status
+    assert run_tool(["git", "rev-parse", "HEAD"], folder).strip() == head
+    assert (folder / f"metrics/tasks/{MAZE}/phase0-unseen.json").exists()
