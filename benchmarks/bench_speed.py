@@ -123,8 +123,9 @@ def main() -> None:
         begin = time.perf_counter()
         generate()
         plans_s[name] = args.generate_tasks / (time.perf_counter() - begin)
+        coins = maze.task.settings.evolution.coin_fraction
         print(f"generation, {name}: {plans_s[name]:.1f} plans/s ({gen.sampler} {gen.sampler_steps}, batch "
-              f"{gen.batch_size}, coin fraction {gen.coin_fraction}; compiling included)")  # fmt: skip
+              f"{gen.batch_size}, coin fraction {coins}; compiling included)")  # fmt: skip
 
     print(f"decision_ms_umaze_b1={decision_ms[f'profile {pl.sampler} {pl.sampler_steps}']:.2f}")
     print(f"speedup_train={speedup_train:.3f}")

@@ -18,7 +18,6 @@ adaptdiffuser set evolve=hopper-medium
 adaptdiffuser set evolution.generate.tasks=1024
 adaptdiffuser set evolution.generate.sampler=ddpm
 adaptdiffuser set evolution.generate.sampler_steps=20
-adaptdiffuser set evolution.generate.coin_fraction=0.0
 dvc repro
 cp metrics/summary.json metrics/science/hopper-medium.json
 adaptdiffuser gains metrics/science/maze2d-umaze.json metrics/science/hopper-medium.json

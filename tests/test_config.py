@@ -68,7 +68,8 @@ def test_repo_params_load() -> None:
     assert params.model.dim == 16 and params.model.dim_mults == [1, 4, 8]
     assert params.diffusion.horizon == 128 and params.pretrain.lr == pytest.approx(2e-4)
     assert params.planner.sampler == "ddim"
-    assert (params.planner.tracking_p_gain, params.planner.tracking_d_gain) == (2.0, 0.5)
+    assert (task.settings.follower.p_gain, task.settings.follower.d_gain) == (2.0, 0.5)
+    assert (task.settings.evolution.cell_spread, task.settings.evolution.coin_fraction) == (0.4, 0.25)
     # the task has no overrides: its generic sections are the top-level ones
     assert (task.model, task.diffusion, task.pretrain, task.planner, task.evaluate) == (
         params.model,
@@ -238,9 +239,12 @@ BAD = [
     (umaze(env={"maze": 7}), rf"{T}.env.maze"),
     (umaze(env={"layout": ["#####", "#G..", "#####"]}), rf"{T}.env.layout"),
     ({"evaluate": {"episodes": 0}}, "evaluate.episodes"),
-    ({"planner": {"tracking_p_gain": 0.0}}, "planner.tracking_p_gain"),
-    ({"planner": {"tracking_d_gain": -0.5}}, "planner.tracking_d_gain"),
-    (umaze(env={"tracking_p_gain": 1.0}), rf"{T}.env.tracking_p_gain"),  # the gains live in planner
+    (umaze(follower={"p_gain": 0.0}), rf"{T}.follower.p_gain"),
+    (umaze(follower={"d_gain": -0.5}), rf"{T}.follower.d_gain"),
+    (umaze(env={"tracking_p_gain": 1.0}), rf"{T}.env.tracking_p_gain"),  # the gains live in follower
+    ({"planner": {"tracking_p_gain": 2.0}}, "planner.tracking_p_gain"),  # a maze key, not a generic one
+    ({"evolution": {"generate": {"coin_fraction": 0.25}}}, "evolution.generate.coin_fraction"),
+    (umaze(evolution={"coin_fraction": 1.5}), rf"{T}.evolution.coin_fraction"),
     ({"pretrain": {"expert_fraction": 0.0}}, "pretrain.expert_fraction"),
     ({"phases": {"phase1": {"previous": 1}}}, "phases.phase1.previous"),
     ({"phases": {"phase3": {}}}, "phases.phase3.previous"),

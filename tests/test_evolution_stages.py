@@ -125,7 +125,9 @@ def test_a_phase_that_keeps_nothing_is_a_result_and_equals_its_control(
     copy = tmp_path / "project"
     shutil.copytree(root, copy)  # every stage below rewrites its outputs there
     strict = _with_phase1(params, max_error=1e-9)
-    strict = dataclasses.replace(strict, tasks=(TASK,), collect_tasks=(TASK,), phases=(strict.phase(1),))
+    strict = dataclasses.replace(
+        strict, tasks=(TASK,), unseen_tasks=(TASK,), collect_tasks=(TASK,), phases=(strict.phase(1),)
+    )
     report = run_discriminate(strict, TASK, copy, 1, progress=False)
     assert report["kept"] == 0 and report["rejected_tracking"] == report["generated"] == 16
     warning = [line for line in capfd.readouterr().err.splitlines() if line.startswith("warning:")]
@@ -147,9 +149,11 @@ def test_a_phase_that_keeps_nothing_is_a_result_and_equals_its_control(
         run_evaluate_unseen(strict, TASK, copy, k, CPU, progress=False)
     gain = run_evaluate(strict, TASK, copy, 1, CPU, progress=False, control=True)
     assert gain["gain_mean"] == 0.0
+    run_evaluate_unseen(strict, TASK, copy, 1, CPU, progress=False, control=True)
     summary = run_summarize(strict, copy)[TASK]["phase_1"]
     assert summary["discriminator"]["kept"] == 0 and summary["gain_mean"] == 0.0
     assert summary["score_mean"] == summary["control"]["score_mean"]
+    assert summary["gold_coin"] == summary["control"]["gold_coin"]  # the same model on the unseen task too
     run_report(copy)
     with (copy / "metrics" / "report" / TASK / "score_by_phase.csv").open() as f:
         rows = {row["phase"]: row for row in csv.DictReader(f)}

@@ -27,6 +27,7 @@ def _phase0_of_one_task(path: Path) -> None:
 
 @pytest.mark.e2e
 def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
+    (tmp_path / "project").mkdir()
     project = make_smoke_project(tmp_path / "project", run_tool, edit=_phase0_of_one_task)
     head = run_tool(["git", "rev-parse", "HEAD"], project).strip()
     run_tool(["git", "commit", "-q", "--allow-empty", "-m", "later work"], project)  # the run stays on `head`

@@ -9,7 +9,7 @@ import pytest
 from conftest import maze_sim
 from matplotlib.figure import Figure
 
-from adaptdiffuser.config import Params, PlannerParams
+from adaptdiffuser.config import Params, params_from_dict
 from adaptdiffuser.families.maze2d.execution import PlanFollower
 from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, parse_layout
 from adaptdiffuser.families.maze2d.params import EnvParams, Maze2DTaskParams
@@ -212,8 +212,7 @@ def test_unknown_builtin_maze() -> None:
 
 @pytest.mark.parametrize(("p_gain", "d_gain"), [(1.0, 1.0), (2.0, 0.5)], ids=["diffuser", "default"])
 def test_tracking_action_moves_towards_target(p_gain: float, d_gain: float) -> None:
-    params = Params(planner=PlannerParams(tracking_p_gain=p_gain, tracking_d_gain=d_gain))
-    env = maze_sim(params)
+    env = maze_sim(_with_follower(p_gain, d_gain))
     start = env.set_state(np.array([*env.cell_to_xy((3, 3)), 0.0, 0.0]))
     target = np.array([*env.cell_to_xy((3, 1)), 0.0, 0.0])
     obs = start
@@ -230,8 +229,14 @@ def test_tracking_action_moves_towards_target(p_gain: float, d_gain: float) -> N
     assert first[0] < 0 and first[1] == pytest.approx(0.0, abs=1e-9)
 
 
-def test_tracking_gains_come_from_planner_params() -> None:
-    env = maze_sim(Params(planner=PlannerParams(tracking_p_gain=3.0, tracking_d_gain=0.25)))
+def _with_follower(p_gain: float, d_gain: float) -> Params:
+    """Default params whose U-Maze task follows plans with these gains."""
+    entry = {"family": "maze2d", "follower": {"p_gain": p_gain, "d_gain": d_gain}}
+    return params_from_dict({"task": {"maze2d-umaze": entry}})
+
+
+def test_tracking_gains_come_from_the_task_follower() -> None:
+    env = maze_sim(_with_follower(3.0, 0.25))
     assert (env.tracking_p_gain, env.tracking_d_gain) == (3.0, 0.25)
     obs = np.array([0.0, 0.0, 0.4, -0.2])
     target = np.array([0.1, -0.05, 0.0, 0.6])

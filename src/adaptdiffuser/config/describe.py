@@ -65,7 +65,7 @@ def describe(params: Params) -> list[str]:
             k = phase.name
             lines += [
                 f"  generate@{k}: {g.tasks} plans from {t.name} phase{phase.previous}, "
-                f"{_sampler(g.sampler, g.sampler_steps)}, coin fraction {g.coin_fraction:g}",
+                f"{_sampler(g.sampler, g.sampler_steps)}",
                 f"  discriminate@{k}: {rule[d.rule]}"
                 + (f", tracking error <= {d.max_error:g}" if d.tracking else ", no tracking (planned reward)"),
                 f"  finetune@{k}: {max(1, round(f.steps_fraction * t.pretrain.steps))} steps on phases "

@@ -14,14 +14,12 @@ from pydantic.dataclasses import dataclass
 
 from adaptdiffuser.config.fields import (
     FRACTION,
-    HALF_CELL,
     ODD,
     UNIT,
     UNIT_OPEN,
     Bool,
     Float,
     Int,
-    NonNegativeFloat,
     NonNegativeInt,
     PositiveFloat,
     PositiveInt,
@@ -86,8 +84,6 @@ class PlannerParams:
     sampler: Sampler = "ddim"
     sampler_steps: PositiveInt = 16
     replan_every: NonNegativeInt = 0
-    tracking_p_gain: PositiveFloat = 2.0
-    tracking_d_gain: NonNegativeFloat = 0.5
 
 
 @dataclass(frozen=True, config=SECTION)
@@ -105,8 +101,6 @@ class GenerateParams:
     seed: Seed = 100
     sampler: Sampler = "ddim"
     sampler_steps: PositiveInt = 16  # and <= diffusion.n_steps (checked on Params)
-    cell_spread: Annotated[Float, HALF_CELL] = 0.4
-    coin_fraction: Annotated[Float, UNIT] = 0.0
 
 
 @dataclass(frozen=True, config=SECTION)

@@ -44,10 +44,6 @@ def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, se
         "discriminate": asdict(cfg),
         "seed": seed,
         "data": {"generated": {"path": str(generated_path(task.name, phase, seed)), "sha256": file_digest(source)}},
-        "planner": {
-            "tracking_p_gain": task.planner.tracking_p_gain,
-            "tracking_d_gain": task.planner.tracking_d_gain,
-        },
     }
     with stage_run(task.name, "discriminate", phase, logged, root, seed=seed):
         family = get_family(task.family)

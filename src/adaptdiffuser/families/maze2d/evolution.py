@@ -26,6 +26,7 @@ from adaptdiffuser.families.maze2d.generation import (
     split_task_trajectories,
     task_trajectories,
 )
+from adaptdiffuser.families.maze2d.params import EvolutionSettings
 from adaptdiffuser.families.maze2d.rollouts import (
     ERROR_COLUMN,
     reached_goal,
@@ -51,7 +52,7 @@ def generate_navigation_data(
 ) -> tuple[Trajectories, dict[str, float]]:
     """One plan per random task, taken at its word (planned states, actions and reward), with the task columns; or,
     with ``evolution.recipe: rollouts``, one closed-loop rollout per task (:func:`generate_rollout_data`)."""
-    tasks = generation_tasks(env, cfg, seed)
+    tasks = generation_tasks(env, task.settings.evolution, cfg.tasks, seed)
     if task.settings.evolution.recipe == "rollouts":
         return generate_rollout_data(env, task, planner, tasks, cfg, alpha, seed, generator, progress)
     plans = generate_plans(planner, tasks, cfg.batch_size, seed, alpha=alpha, progress=progress)
@@ -70,12 +71,13 @@ def generate_navigation_data(
     return traj, stats
 
 
-def generation_tasks(env: Maze2D, cfg: GenerateParams, seed: int) -> NavigationTasks:
-    """The phase's random (start, goal) tasks, the last ``cfg.coin_fraction`` of them with a coin."""
+def generation_tasks(env: Maze2D, settings: EvolutionSettings, n: int, seed: int) -> NavigationTasks:
+    """The phase's ``n`` random (start, goal) tasks, the start within ``settings.cell_spread`` of its cell centre,
+    the last ``settings.coin_fraction`` of them with a coin."""
     rng = np.random.default_rng(seed)
-    tasks = sample_navigation_tasks(env, cfg.tasks, rng, cfg.cell_spread)
-    if cfg.coin_fraction > 0:
-        tasks = add_coins(env, tasks, cfg.coin_fraction, rng)
+    tasks = sample_navigation_tasks(env, n, rng, settings.cell_spread)
+    if settings.coin_fraction > 0:
+        tasks = add_coins(env, tasks, settings.coin_fraction, rng)
     return tasks
 
 

@@ -34,8 +34,8 @@ class Maze2DFamily(Family):
 
     def make_simulator(self, task: TaskParams) -> Maze2D:
         """A fresh simulator: protocol from ``env``, expert gains from ``expert``, plan-follower gains from
-        ``planner``."""
-        e, x, pl = task.settings.env, task.settings.expert, task.planner
+        ``follower``."""
+        e, x, f = task.settings.env, task.settings.expert, task.settings.follower
         return Maze2D(
             resolve_layout(e.maze, e.layout),
             name=task.settings.maze_name,
@@ -48,8 +48,8 @@ class Maze2DFamily(Family):
             expert_d_gain=x.d_gain,
             expert_jitter=x.jitter,
             expert_waypoint_radius=x.waypoint_radius,
-            tracking_p_gain=pl.tracking_p_gain,
-            tracking_d_gain=pl.tracking_d_gain,
+            tracking_p_gain=f.p_gain,
+            tracking_d_gain=f.d_gain,
         )
 
     def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
@@ -125,7 +125,7 @@ class Maze2DFamily(Family):
 
     def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
         """Plans (or, with ``evolution.recipe: rollouts``, closed-loop rollouts) for random (start, goal) cells,
-        ``cfg.coin_fraction`` of them guided toward a coin (``alpha``)."""
+        ``evolution.coin_fraction`` of them guided toward a coin (``alpha``)."""
         from adaptdiffuser.families.maze2d.evolution import generate_navigation_data
 
         env = self.make_simulator(task)

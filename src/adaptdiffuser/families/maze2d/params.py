@@ -10,6 +10,8 @@ from pydantic.dataclasses import dataclass
 
 from adaptdiffuser.config.errors import ConfigError
 from adaptdiffuser.config.fields import (
+    HALF_CELL,
+    UNIT,
     Bool,
     Float,
     NonNegativeFloat,
@@ -98,6 +100,19 @@ class EvolutionSettings:
     recipe: Annotated[Str, one_of(*RECIPES)] = "plans"
     replan_every: NonNegativeInt = 32
     stay_at_goal: Bool = False
+    #: a task's start: its cell centre + U(-cell_spread, cell_spread)
+    cell_spread: Annotated[Float, HALF_CELL] = 0.4
+    #: share of each phase's tasks with a gold coin in a third random cell, planned with guidance ``alpha``
+    coin_fraction: Annotated[Float, UNIT] = 0.25
+
+
+@dataclass(frozen=True, config=SECTION)
+class FollowerParams:
+    """The plan follower (evaluation and the discriminator's tracking): action = ``p_gain`` (planned xy - xy) +
+    ``d_gain`` (planned velocity - velocity), clipped (Diffuser uses 1 and 1)."""
+
+    p_gain: PositiveFloat = 2.0
+    d_gain: NonNegativeFloat = 0.5
 
 
 @dataclass(frozen=True, config=SECTION)
@@ -115,6 +130,7 @@ class Maze2DTaskParams:
     collect: CollectParams = field(default_factory=CollectParams)
     gold_coin: GoldCoinParams = field(default_factory=GoldCoinParams)
     evolution: EvolutionSettings = field(default_factory=EvolutionSettings)
+    follower: FollowerParams = field(default_factory=FollowerParams)
 
     def describe_data(self) -> str:
         """The collect stage's recipe, one line (``adaptdiffuser check``)."""
