@@ -4,7 +4,8 @@ path as another CPU's rounding would (another seed, another torch thread count),
 For each task and variation: train the behaviour policy with the band search (``medium_score +- medium_band``),
 record the ``medium`` dataset, and print the chosen checkpoint, its confirmed score, the dataset's mean normalized
 score over its episodes (as the reference stage reports it), how often training went back, and the time (printed,
-never asserted). Writes every figure as JSON.
+never asserted). Writes every figure as JSON after each variation; run again with the same ``--out``, it skips the
+variations already there (a stopped run goes on).
 
     python benchmarks/bench_behaviour_band.py [--tasks hopper-medium walker2d-medium halfcheetah-medium]
         [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 600000]
@@ -26,6 +27,7 @@ from adaptdiffuser.families.locomotion.family import episode_returns
 from adaptdiffuser.families.locomotion.params import BehaviourSettings
 from adaptdiffuser.families.locomotion.reference import normalized_score
 from adaptdiffuser.families.locomotion.simulator import env_id_of
+from adaptdiffuser.io import atomic_path
 
 
 def main() -> None:
@@ -36,10 +38,15 @@ def main() -> None:
     parser.add_argument("--max-train-steps", type=int, default=600_000)
     parser.add_argument("--out", default="bench_behaviour_band.json")
     args = parser.parse_args()
-    results: list[dict] = []
+    out = Path(args.out)
+    results: list[dict] = json.loads(out.read_text()) if out.exists() else []  # a stopped run goes on from there
+    done = {(r["task"], r["seed"], r["threads"]) for r in results}
     for task in args.tasks:
         for variation in args.variations:
             seed, threads = (int(x) for x in variation.split(":"))
+            if (task, seed, threads) in done:
+                print(f"{task} seed {seed} threads {threads}: already in {out}", flush=True)
+                continue
             settings = BehaviourSettings(seed=seed, torch_threads=threads, dataset_steps=args.dataset_steps,
                                          max_train_steps=args.max_train_steps)  # fmt: skip
             row: dict = {"task": task, "seed": seed, "threads": threads, "band": [settings.medium_score -
@@ -52,7 +59,7 @@ def main() -> None:
                     row |= {"error": str(err), "wall_s": time.perf_counter() - start}
                     print(f"{task} seed {seed} threads {threads}: {err}", flush=True)
                     results.append(row)
-                    Path(args.out).write_text(json.dumps(results, indent=2) + "\n")
+                    _save(out, results)
                     continue
                 summary = json.loads((Path(tmp) / "behaviour.json").read_text())
             scores = normalized_score(episode_returns(traj), env_id_of(task))  # as the reference stage scores it
@@ -72,7 +79,12 @@ def main() -> None:
                 flush=True,
             )
             results.append(row)
-            Path(args.out).write_text(json.dumps(results, indent=2) + "\n")
+            _save(out, results)
+
+
+def _save(out: Path, results: list[dict]) -> None:
+    with atomic_path(out) as tmp:  # a kill mid-write leaves the last whole file
+        tmp.write_text(json.dumps(results, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -250,6 +250,42 @@ def test_a_checkpoint_hook_sees_the_ema_of_each_checkpoint_and_changes_nothing(
     assert any(not torch.equal(seen[10][k], seen[25][k]) for k in seen[25])  # each call saw its own step's EMA
 
 
+def test_learning_rate_schedules() -> None:
+    """Constant without warm-up is exactly lr at every step; warm-up climbs linearly to lr; cosine falls from lr
+    to nearly zero at the last step."""
+    constant = [training.lr_factor(CFG, s) for s in range(CFG.steps)]
+    assert constant == [1.0] * CFG.steps
+    warm = dataclasses.replace(CFG, lr_warmup=4)
+    assert [training.lr_factor(warm, s) for s in range(6)] == [0.25, 0.5, 0.75, 1.0, 1.0, 1.0]
+    cosine = dataclasses.replace(CFG, steps=10, lr_schedule="cosine", lr_warmup=2)
+    factors = [training.lr_factor(cosine, s) for s in range(10)]
+    assert factors[:3] == [0.5, 1.0, 1.0] and factors[6] == pytest.approx(0.5)
+    assert all(a > b for a, b in zip(factors[2:], factors[3:], strict=False)) and 0 < factors[-1] < 0.05
+
+
+def test_a_killed_cosine_run_resumes_on_its_schedule(tmp_path: Path, dataset: WindowDataset, new_bundle) -> None:
+    """The schedule is a function of the step: killed at step 25 and resumed from step 20, the cosine run ends with
+    exactly the weights of a straight one, which differ from the constant-rate run's."""
+    cfg = dataclasses.replace(CFG, lr_schedule="cosine", lr_warmup=5)
+    straight = new_bundle(0)
+    train(straight, dataset, cfg, CPU, progress=False)
+    constant = new_bundle(0)
+    train(constant, dataset, CFG, CPU, progress=False)
+    pairs = zip(straight.diffusion.parameters(), constant.diffusion.parameters(), strict=True)
+    assert any(not torch.equal(a, b) for a, b in pairs)
+
+    def kill_at_25(step: int, loss: float) -> None:
+        if step == 25:
+            raise Interrupted
+
+    resume = tmp_path / "resume.pt"
+    with pytest.raises(Interrupted):
+        train(new_bundle(0), dataset, cfg, CPU, resume, "cosine", on_log=kill_at_25, progress=False)
+    resumed = new_bundle(9)
+    train(resumed, dataset, cfg, CPU, resume, "cosine", progress=False)
+    assert_same_weights(weights(resumed), weights(straight))
+
+
 def test_fingerprint() -> None:
     assert fingerprint({"a": 1, "b": [1, 2]}) == fingerprint({"b": [1, 2], "a": 1})
     assert fingerprint({"a": 1}) != fingerprint({"a": 2})

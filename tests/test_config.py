@@ -246,6 +246,8 @@ BAD = [
     ({"evolution": {"generate": {"coin_fraction": 0.25}}}, "evolution.generate.coin_fraction"),
     (umaze(evolution={"coin_fraction": 1.5}), rf"{T}.evolution.coin_fraction"),
     ({"pretrain": {"expert_fraction": 0.0}}, "pretrain.expert_fraction"),
+    ({"pretrain": {"lr_schedule": "linear"}}, "pretrain.lr_schedule"),
+    ({"pretrain": {"lr_warmup": -1}}, "pretrain.lr_warmup"),
     ({"phases": {"phase1": {"previous": 1}}}, "phases.phase1.previous"),
     ({"phases": {"phase3": {}}}, "phases.phase3.previous"),
     ({"phases": {"first": {"previous": 0}}}, "phases.first"),

@@ -1,6 +1,8 @@
 """Training loop: Adam, gradient accumulation, EMA, a progress bar, and resumable checkpoints.
 
-The learning rate is constant (no schedule). At the end of training the Adam state of the raw weights is kept in
+The learning rate is ``lr`` throughout (``lr_schedule: constant``, Diffuser's), or follows a cosine from ``lr`` down to
+zero at the last step (``cosine``), after ``lr_warmup`` steps of linear warm-up; it is a function of the step alone,
+so a resumed run follows it exactly. At the end of training the Adam state of the raw weights is kept in
 ``bundle.optimizer`` (saved as the bundle's ``optimizer.pt``), so that a fine-tuning run can carry it on
 (``evolution.finetune.optimizer: carry``) instead of restarting Adam (``restart``, the default).
 """
@@ -10,6 +12,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -27,6 +30,17 @@ from adaptdiffuser.models.compiled import compile_network
 
 LogFn = Callable[[int, float], None]
 OPTIMIZER_MODES = ("restart", "carry")
+
+
+def lr_factor(cfg: PretrainParams, step: int) -> float:
+    """The multiple of ``cfg.lr`` used by optimizer step ``step`` (0-based): exactly 1.0 for a constant schedule
+    without warm-up."""
+    if step < cfg.lr_warmup:
+        return (step + 1) / cfg.lr_warmup
+    if cfg.lr_schedule == "constant":
+        return 1.0
+    span = max(cfg.steps - cfg.lr_warmup, 1)
+    return 0.5 * (1.0 + math.cos(math.pi * (step - cfg.lr_warmup) / span))
 
 
 def fingerprint(*parts: Any) -> str:
@@ -148,6 +162,7 @@ def train(
             tqdm.write(f"ignoring resume state {resume_path}: it belongs to other params or data")
     act_dim = model.act_dim
     conditioning = bundle.config.get("conditioning", "start_goal")
+    scheduled = cfg.lr_schedule != "constant" or cfg.lr_warmup > 0  # else every step uses cfg.lr as set above
     bar = tqdm(
         range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress, mininterval=2.0
     )
@@ -159,6 +174,9 @@ def train(
             loss = model.loss(x0, cond, generator=gen) / cfg.grad_accum
             loss.backward()
             log.add(loss.item() * cfg.grad_accum)
+        if scheduled:
+            for group in optimizer.param_groups:
+                group["lr"] = cfg.lr * lr_factor(cfg, step)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         done = step + 1

@@ -32,6 +32,7 @@ from adaptdiffuser.config.fields import (
 
 SECTION = ConfigDict(extra="forbid")
 SELECTION_RULES = ("paper", "quantile", "top_k")
+LR_SCHEDULES = ("constant", "cosine")
 
 DimMults = Annotated[
     list[Int], requires(lambda v: len(v) > 0 and all(m > 0 for m in v), "a non-empty list of positive integers")
@@ -70,6 +71,8 @@ class PretrainParams:
     batch_size: PositiveInt = 32
     grad_accum: PositiveInt = 1
     lr: PositiveFloat = 2e-4
+    lr_schedule: Annotated[Str, one_of(*LR_SCHEDULES)] = "constant"  # constant (Diffuser) | cosine (to 0 at the end)
+    lr_warmup: NonNegativeInt = 0  # steps of linear warm-up from lr / lr_warmup to lr
     ema_decay: Annotated[Float, UNIT_OPEN] = 0.995
     ema_every: PositiveInt = 10
     ema_start: NonNegativeInt = 500
