@@ -4,6 +4,7 @@ search space, and stale trials of killed workers."""
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import os
 import shutil
@@ -35,7 +36,13 @@ from adaptdiffuser.tooling.sweep import (
     reproduce_command,
     retried_trial_number,
 )
-from adaptdiffuser.tooling.sweep_trials import plan_trial, run_trial, trial_raw
+from adaptdiffuser.tooling.sweep_trials import (
+    family_unseen_objective,
+    objective_value,
+    plan_trial,
+    run_trial,
+    trial_raw,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 TASK = "maze2d-umaze"  # the smoke profile's evolved task, the one a sweep reruns the phases of
@@ -213,6 +220,40 @@ def test_trials_run_the_stages_dvc_yaml_declares(tmp_path: Path) -> None:
     assert names.index("evaluate-again@phase2") < names.index("evaluate-control@phase2")
     with pytest.raises(StageError, match="dvc.yaml has no stage evaluate-unseen@phase1"):
         plan_trial(tmp_path, trial, "unseen")
+
+
+def test_the_unseen_objectives_read_the_family_figure_of_the_unseen_metrics_file() -> None:
+    """``unseen`` is the family's figure of its unseen-task file (Maze2D: 100 x coin both-rate, KUKA: the
+    pick-and-place score), ``mix`` weighs it against the score; a task without an unseen task has none."""
+    maze = load_params(REPO / "params.yaml")
+    metrics = {"evaluate": {"score_mean": 80.0}, "unseen": {"gold_coin": {"both_rate": 0.4}, "n_seeds": 1}}
+    assert objective_value(dataclasses.replace(maze.sweep, objective="score"), metrics) == 80.0
+    unseen = dataclasses.replace(maze.sweep, objective="unseen")
+    assert objective_value(unseen, metrics, family_unseen_objective(maze)) == pytest.approx(40.0)
+    mix = dataclasses.replace(maze.sweep, objective="mix", unseen_weight=0.25)
+    assert objective_value(mix, metrics, family_unseen_objective(maze)) == pytest.approx(0.75 * 80 + 0.25 * 40)
+    kuka = params_from_dict(
+        {
+            "tasks": ["kuka-stacking"],
+            "unseen_tasks": ["kuka-stacking"],
+            "evolve": "kuka-stacking",
+            "task": {"kuka-stacking": {"family": "kuka"}},
+            "sweep": {"objective": "unseen"},
+        }  # fmt: skip
+    )
+    placed = {"evaluate": {"score_mean": 5.0}, "unseen": {"pick_place": {"score_mean": 12.5}}}
+    assert objective_value(kuka.sweep, placed, family_unseen_objective(kuka)) == 12.5
+    hopper = params_from_dict(
+        {
+            "tasks": ["hopper-medium"],
+            "unseen_tasks": [],
+            "evolve": "hopper-medium",
+            "task": {"hopper-medium": {"family": "locomotion"}},
+        }  # fmt: skip
+    )
+    assert family_unseen_objective(hopper) is None
+    with pytest.raises(StageError, match="has no unseen task"):
+        objective_value(unseen, metrics, None)
 
 
 def test_apply_changes_only_the_swept_lines_of_the_repository_params(tmp_path: Path) -> None:

@@ -33,6 +33,7 @@ class KukaFamily(Family):
     name = "kuka"
     conditioning = "start"
     normalizer_kind = "minmax"
+    unseen_task = KukaTaskParams.UNSEEN_TASK
 
     def make_simulator(self, task: TaskParams, kind: str = "stacking", setup: int = 1) -> KukaSimulator:
         """The simulator of stacking (the task's score) or of pick-and-place setup ``setup``."""
@@ -80,8 +81,6 @@ class KukaFamily(Family):
         from adaptdiffuser.families.kuka.execution import ReplanningController
 
         return ReplanningController(planner, task.evaluate.seed)
-
-    unseen_task = KukaTaskParams.UNSEEN_TASK
 
     def evaluate_unseen(self, task, planner, alpha, ref, pictures, title, progress):
         """Pick-and-place (no demonstrations) in each setup of ``pick_place.setups``, guided with scale ``alpha``:
