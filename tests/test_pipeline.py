@@ -281,7 +281,7 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
         ran = dry_run_with(lambda p: p["phases"]["phase2"].update(generate={"tasks": 8}))
         assert ran == {"generate@phase2", "discriminate@phase2", "finetune@phase2", "control@phase2", "summarize"}
         # a generation default reruns generation in every phase; collect, reference and pretrain stay cached
-        ran = dry_run_with(lambda p: p["evolution"]["generate"].update(batch_size=8))
+        ran = dry_run_with(lambda p: p["evolution"]["generate"].update(batch_size=4))  # smoke: 8
         assert ran == {"generate@phase1", "generate@phase2"}
     finally:
         params.write_text(original)
