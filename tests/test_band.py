@@ -21,6 +21,7 @@ class CurveTrainee:
 
     def __init__(self, curve: Callable[[int], float]) -> None:
         self.curve, self.at, self.band_measured, self.stderr = curve, 0, 0, 0.0
+        self.confirmed: list[int] = []  # the steps of each fresh confirmation
 
     def train(self, steps: int) -> int:
         self.at += steps
@@ -34,6 +35,10 @@ class CurveTrainee:
 
     def band_score(self) -> tuple[float, float]:
         self.band_measured += 1
+        return self.curve(self.at), self.stderr
+
+    def confirm_score(self) -> tuple[float, float]:
+        self.confirmed.append(self.at)
         return self.curve(self.at), self.stderr
 
     def snapshot(self) -> int:
@@ -77,7 +82,22 @@ def test_a_score_is_confirmed_before_it_is_chosen() -> None:
     trainee = CurveTrainee(lambda steps: 31.0 + steps / 10_000)
     trainee.band_score = lambda: (trainee.curve(trainee.at) - 3.0, 0.0)  # type: ignore[method-assign]
     choice = search_band(trainee, BAND, 10_000, 2_048, 100_000)
-    assert choice.steps == 20_000 and choice.score == pytest.approx(30.0)  # at 10 000: 32 quick, 29 confirmed
+    assert choice.steps == 20_000  # at 10 000: 32 quick, 29 on the band episodes
+    assert choice.score == pytest.approx(33.0)  # the fresh measurement (here the curve itself) is the one kept
+
+
+def test_a_lucky_band_score_is_not_chosen_when_fresh_episodes_put_the_policy_below_the_band() -> None:
+    """The band score of the policy the search stops at is biased up (it is the luckiest of many measured on the
+    same episodes); a fresh measurement decides: 3 points of luck at 28.5 pass the band score, not the fresh one."""
+    trainee = CurveTrainee(lambda steps: 27.0 + steps / 10_000)
+    trainee.band_score = lambda: (trainee.curve(trainee.at) + 3.0, 0.5)  # type: ignore[method-assign]
+    trainee.stderr = 0.5
+    records: list[dict] = []
+    choice = search_band(trainee, BAND, 5_000, 2_048, 100_000, records.append)
+    assert trainee.confirmed[0] == 5_000  # 27.5 + 3 = 30.5 holds; fresh 27.5 does not
+    assert choice.steps == 35_000 and choice.score == pytest.approx(30.5) and choice.stderr == 0.5  # the fresh score
+    assert records[0]["action"] == "continue" and records[0]["confirm_score"] == pytest.approx(27.5)
+    assert records[-1]["action"] == "choose" and records[-1]["band_score"] == pytest.approx(33.5)
 
 
 def test_a_score_inside_the_band_by_less_than_its_stderr_is_not_chosen() -> None:
@@ -101,7 +121,7 @@ def test_recorder_truncation_ends_the_cut_episode_with_a_timeout() -> None:
 
 
 TINY = {"max_train_steps": 600, "eval_every": 150, "min_eval_every": 150, "eval_episodes": 1, "band_episodes": 2,
-        "episode_steps": 60, "net_arch": [32, 32], "torch_threads": 1, "ppo_n_steps": 150,
+        "confirm_episodes": 3, "episode_steps": 60, "net_arch": [32, 32], "torch_threads": 1, "ppo_n_steps": 150,
         "batch_size": 50}  # fmt: skip
 
 
@@ -122,6 +142,10 @@ def test_a_real_learner_is_chosen_inside_the_band_with_its_replay(tmp_path: Path
     summary = json.loads((tmp_path / "behaviour.json").read_text())
     medium = summary["medium"]
     assert medium["band"] == [-100.0, 100.0] and medium["steps"] == 150 and medium["rewinds"] == 0
-    assert medium["score_episodes"] == 2 and medium["normalized_score"] == summary["curve"][-1]["band_score"]
-    assert medium["score_stderr"] == summary["curve"][-1]["band_stderr"] >= 0.0
+    last = summary["curve"][-1]  # the recorded score is the fresh confirmation's, not the band episodes'
+    assert (
+        medium["score_episodes"] == 3
+        and medium["normalized_score"] == last["confirm_score"] == last["normalized_score"]
+    )
+    assert medium["score_stderr"] == last["confirm_stderr"] >= 0.0 and last["confirm_score"] != last["band_score"]
     assert len(result.replay["episode"]) == 150 and (tmp_path / "medium.zip").exists()

@@ -321,7 +321,7 @@ def train_behaviour(
         trainee = _Learner(learner, train_env, recorder, eval_sim, settings, _Bar)
 
         def on_eval(record: dict[str, Any]) -> None:
-            score = record.get("band_score", record["quick_score"])
+            score = record.get("confirm_score", record.get("band_score", record["quick_score"]))
             curve.append({**record, "normalized_score": score, "wall_s": time.perf_counter() - start})
             bar.set_postfix(score=f"{score:.1f}")
             write_json(out_dir / SUMMARY_FILE, summary)
@@ -330,7 +330,7 @@ def train_behaviour(
                              on_eval, setting=setting)  # fmt: skip
         info = {"file": "medium.zip", "target": settings.medium_score, "band": [band.low, band.high],
                 "reached": True, "steps": choice.steps, "normalized_score": choice.score,
-                "score_stderr": choice.stderr, "score_episodes": settings.band_episodes,
+                "score_stderr": choice.stderr, "score_episodes": settings.confirm_episodes,
                 "score_noise": settings.rollout_noise,
                 "spent_steps": choice.spent, "rewinds": choice.rewinds,
                 "wall_s": time.perf_counter() - start}  # fmt: skip
@@ -359,6 +359,10 @@ def train_behaviour(
     return result
 
 
+def _mean_and_stderr(scores: np.ndarray) -> tuple[float, float]:
+    return float(scores.mean()), float(scores.std(ddof=1) / np.sqrt(len(scores)))
+
+
 class _Learner:
     """An SB3 learner as the band search's :class:`~adaptdiffuser.families.locomotion.band.Trainee`: snapshots are
     the saved learner (policy, optimizer, step count) with the replay recorder's length; going back reloads it,
@@ -368,6 +372,7 @@ class _Learner:
                  settings: BehaviourSettings, callback: type) -> None:  # fmt: skip
         self.learner, self.env, self.recorder = learner, env, recorder
         self.eval_sim, self.settings, self.callback = eval_sim, settings, callback
+        self.confirmations = 0
 
     def train(self, steps: int) -> int:
         before = self.learner.num_timesteps
@@ -387,8 +392,12 @@ class _Learner:
         return float(self._scores(self.settings.eval_episodes, self.settings.eval_seed).mean())
 
     def band_score(self) -> tuple[float, float]:
-        scores = self._scores(self.settings.band_episodes, self.settings.eval_seed + 1)
-        return float(scores.mean()), float(scores.std(ddof=1) / np.sqrt(len(scores)))
+        return _mean_and_stderr(self._scores(self.settings.band_episodes, self.settings.eval_seed + 1))
+
+    def confirm_score(self) -> tuple[float, float]:
+        self.confirmations += 1  # each confirmation on episodes of its own
+        seed = derive_seed(self.settings.eval_seed + 2, self.confirmations)
+        return _mean_and_stderr(self._scores(self.settings.confirm_episodes, seed))
 
     def snapshot(self) -> tuple[bytes, int]:
         buffer = io.BytesIO()

@@ -63,6 +63,9 @@ class BehaviourSettings(BaseModel):
     medium_band: FiniteFloat | None = Field(3.0, gt=0.0)
     #: episodes of that measurement; the score must lie inside the band by one standard error of its mean
     band_episodes: int = Field(50, gt=1)
+    #: episodes of the fresh measurement a policy passing the band must pass too, on starts no other measurement
+    #: used (the search keeps the luckiest of many policies measured on the same episodes); its score is recorded
+    confirm_episodes: int = Field(100, gt=1)
     #: the shortest interval between evaluations when going back (rounded up to whole PPO rollouts)
     min_eval_every: int = Field(2_048, gt=0)
     #: normalized score the ``expert`` policy (``medium-expert`` only) trains on to
