@@ -4,10 +4,11 @@ steps a profile needs before its Diffuser baseline is worth evolving, chosen on 
 Trains the task's phase-0 model exactly as ``pretrain@<task>`` does (its model, diffusion and pretrain settings, for
 one training seed) up to ``--steps``, and every ``--every`` steps evaluates the EMA under the task's protocol on
 ``--episodes`` episodes from ``--seed`` (default 7: a validation seed, never ``evaluate.seed``). Each point goes to
-``--out`` (JSON lines: step, score mean and standard error, success rate where the family reports it, training
-seconds so far, evaluation seconds) as soon as it is measured. Stopped at any point, the same command continues
-from the last point: training resumes from its state in ``models/.resume/`` and the points already written are
-kept. For families whose planner needs no value function (Maze2D, KUKA).
+``--out`` (JSON lines: step, score mean and standard error, success rate where the family reports it, the
+training's CPU seconds so far (this process's: other work on the machine does not count) and its wall seconds,
+evaluation seconds) as soon as it is measured. Stopped at any point, the same command continues from the last
+point: training resumes from its state in ``models/.resume/`` and the points already written are kept. For
+families whose planner needs no value function (Maze2D, KUKA).
 
     python benchmarks/learning_curve.py WORKSPACE --task maze2d-medium --steps 40000 --every 4000
         [--seed 7] [--episodes 30] [--training-seed 0] [--out curve.jsonl] [--device cpu]
@@ -32,7 +33,7 @@ from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
 from adaptdiffuser.family_registry import get_family
-from adaptdiffuser.io import read_json
+from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.layout import reference_path
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import resolve_device
@@ -69,6 +70,9 @@ def main() -> None:
     out = args.out or root / f"learning_curve-{task.name}-seed{args.training_seed}.jsonl"
     points = [json.loads(line) for line in out.read_text().splitlines()] if out.exists() else []
     done = {point["step"] for point in points}
+    if args.steps in done:
+        print(f"{out} already holds every point up to {args.steps} steps")
+        return
 
     traj, expert = expert_training_data(task, root, args.training_seed)
     cfg = dataclasses.replace(pretrain_config(task, args.training_seed), steps=args.steps, checkpoint_every=args.every)
@@ -83,9 +87,12 @@ def main() -> None:
         f"{pl.sampler_steps}; torch threads {torch.get_num_threads()}; writing {out}",
         flush=True,
     )
-    clock = {"train_s": points[-1]["train_s"] if points else 0.0, "since": time.perf_counter()}
+    last = points[-1] if points else {}
+    clock = {"train_cpu_s": last.get("train_cpu_s", 0.0), "train_s": last.get("train_s", 0.0)}
+    clock |= {"cpu_since": time.process_time(), "since": time.perf_counter()}
 
     def evaluate(step: int) -> None:
+        clock["train_cpu_s"] += time.process_time() - clock["cpu_since"]
         clock["train_s"] += time.perf_counter() - clock["since"]
         if step not in done:
             start = time.perf_counter()
@@ -100,12 +107,14 @@ def main() -> None:
             )
             scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
             point = {"step": step, "score_mean": float(scores.mean()), "score_stderr": standard_error(scores),
-                     **family.episode_metrics(result), "train_s": round(clock["train_s"], 1),
+                     **family.episode_metrics(result), "train_cpu_s": round(clock["train_cpu_s"], 1),
+                     "train_s": round(clock["train_s"], 1),
                      "eval_s": round(time.perf_counter() - start, 1)}  # fmt: skip
-            with open(out, "a") as f:
-                f.write(json.dumps(point) + "\n")
+            points.append(point)
+            with atomic_path(out) as tmp:  # a kill mid-write leaves the last whole file
+                tmp.write_text("".join(json.dumps(p) + "\n" for p in points))
             print(json.dumps(point), flush=True)
-        clock["since"] = time.perf_counter()
+        clock["cpu_since"], clock["since"] = time.process_time(), time.perf_counter()
 
     train(bundle, dataset, cfg, device, resume, run_id, progress=False, compiled=params.compile.training,
           on_checkpoint=evaluate)  # fmt: skip
