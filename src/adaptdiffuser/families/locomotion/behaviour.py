@@ -27,6 +27,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.families.locomotion.band import Band, search_band
 from adaptdiffuser.families.locomotion.params import BehaviourSettings
 from adaptdiffuser.families.locomotion.reference import normalized_score
@@ -360,7 +361,7 @@ def train_behaviour(
 
 
 def _mean_and_stderr(scores: np.ndarray) -> tuple[float, float]:
-    return float(scores.mean()), float(scores.std(ddof=1) / np.sqrt(len(scores)))
+    return float(scores.mean()), standard_error(scores)
 
 
 class _Learner:
