@@ -18,7 +18,7 @@ from adaptdiffuser.contract import EpisodeBatchResult, TaskFiles
 from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, ValueGuidance
-from adaptdiffuser.diffusion.noise import RowNoise
+from adaptdiffuser.diffusion.noise import RowNoise, stream_words
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler, Sampler
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.families.maze2d.execution import PlannerController
@@ -40,23 +40,61 @@ TINY = ModelParams(dim=8, dim_mults=[1, 2])
 DIFFUSION = DiffusionParams(horizon=H, n_steps=8, predict_epsilon=True)
 
 
-def test_row_noise_rows_are_their_own_generators_streams() -> None:
+def test_row_noise_rows_are_their_own_counter_based_streams() -> None:
     noise = RowNoise(SEEDS)
     first, second = noise.randn((3, 5)), noise.randn((2,))
     assert len(noise) == 4 and first.shape == (4, 3, 5) and second.shape == (4, 2)
-    for i, seed in enumerate(SEEDS):
-        g = torch.Generator().manual_seed(seed)
-        assert torch.equal(first[i], torch.randn((3, 5), generator=g))
-        assert torch.equal(second[i], torch.randn((2,), generator=g))  # the next draws of the same stream
     # a row's draws do not depend on the other rows nor on its position
-    alone = RowNoise([SEEDS[2]]).randn((3, 5))
-    reordered = RowNoise([SEEDS[3], SEEDS[2], SEEDS[0]]).randn((3, 5))
-    assert torch.equal(alone[0], first[2]) and torch.equal(reordered[1], first[2])
+    alone = RowNoise([SEEDS[2]])
+    reordered = RowNoise([SEEDS[3], SEEDS[2], SEEDS[0]])
+    assert torch.equal(alone.randn((3, 5))[0], first[2]) and torch.equal(reordered.randn((3, 5))[1], first[2])
+    # the d-th draw is the d-th draw, whatever the rows: the second draw follows from the seed and the index alone
+    assert torch.equal(alone.randn((2,))[0], second[2]) and torch.equal(reordered.randn((2,))[1], second[2])
     assert not torch.equal(first[0], first[1])
+    assert not torch.equal(first[:, 0, :2], second)  # the next draw is new noise, not the first one again
     assert torch.equal(RowNoise(np.array(SEEDS, dtype=np.uint32)).randn((3, 5)), first)
+    # the same numbers in every precision, up to the precision's rounding
+    double = RowNoise(SEEDS, dtype=torch.float64).randn((3, 5))
+    torch.testing.assert_close(double.float(), first, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("seeds", [[], [[1, 2]], [1.5], [-1]])
+def test_row_noise_is_standard_normal_and_uncorrelated() -> None:
+    """Many rows of neighbouring seeds, two draws: moments of N(0, 1), tails, and no correlation between
+    neighbouring rows, neighbouring elements or successive draws."""
+    noise = RowNoise(range(2000), dtype=torch.float64)
+    a, b = noise.randn((500,)), noise.randn((500,))
+    values = a.flatten()
+    n = values.numel()  # 1e6: the mean's standard error is 1e-3
+    assert abs(float(values.mean())) < 5e-3 and abs(float(values.std()) - 1.0) < 5e-3
+    assert abs(float((values**3).mean())) < 2e-2 and abs(float((values**4).mean()) - 3.0) < 5e-2
+    assert abs(float((values.abs() > 3.0).double().mean()) - 0.0027) < 5 * (0.0027 / n) ** 0.5
+    for x, y in [(a[:-1], a[1:]), (a[:, :-1], a[:, 1:]), (a, b)]:
+        assert abs(float((x * y).mean())) < 5e-3
+
+
+def test_row_noise_matches_splitmix64() -> None:
+    """The integers are SplitMix64's: word n of the stream keyed k is mix64(k + n * gamma), checked against the
+    published generator written with Python integers (seeded 0, its first outputs)."""
+    mask = (1 << 64) - 1
+
+    def reference(state: int, count: int) -> list[int]:
+        out = []
+        for _ in range(count):
+            state = (state + 0x9E3779B97F4A7C15) & mask
+            z = state
+            z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & mask
+            z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & mask
+            out.append(z ^ (z >> 31))
+        return out
+
+    for key in [0, 1, 0x0123456789ABCDEF, mask]:
+        signed = key - (1 << 64) if key >= 1 << 63 else key
+        words = stream_words(torch.tensor([[signed]], dtype=torch.int64), 5)[0]
+        assert [int(w) & mask for w in words] == reference(key, 5)
+    assert reference(0, 1) == [0xE220A8397B1DCDAF]  # SplitMix64 seeded 0: its well-known first output
+
+
+@pytest.mark.parametrize("seeds", [[], [[1, 2]], [1.5], [-1], [2**64]])
 def test_row_noise_rejects_bad_seeds(seeds: list) -> None:
     with pytest.raises(ValueError, match="seed"):
         RowNoise(seeds)

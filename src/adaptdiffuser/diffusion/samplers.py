@@ -1,7 +1,7 @@
 """One sampler interface, two implementations: the full DDPM chain and a strided deterministic DDIM; both take
 optional guidance (reward-gradient or value, see :mod:`adaptdiffuser.diffusion.guidance`), combinable with
-inpainting. Noise comes from a :class:`~adaptdiffuser.diffusion.noise.RowNoise` (one seeded generator per row), so a
-row's sample does not depend on the rest of its batch."""
+inpainting. Noise comes from a :class:`~adaptdiffuser.diffusion.noise.RowNoise` (counter-based, keyed by each row's
+seed), so a row's sample does not depend on the rest of its batch."""
 
 from __future__ import annotations
 
