@@ -16,10 +16,15 @@ PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvc
 
 
 def make_smoke_project(
-    root: Path, run: Callable[[list[str], Path], object], edit: Callable[[Path], None] | None = None
+    root: Path,
+    run: Callable[[list[str], Path], object],
+    edit: Callable[[Path], None] | None = None,
+    profile: str = "smoke",
+    tiny: bool = False,
 ) -> Path:
-    """Copy the project into ``root``, make it a git + DVC repository on the smoke profile (``edit(params_path)``
-    may change the params first) and commit it; ``run(cmd, cwd)`` runs each command and fails the test on error."""
+    """Copy the project into ``root``, make it a git + DVC repository on the smoke profile (or ``profile``, at tiny
+    scale with ``tiny``; ``edit(params_path)`` may change the params first) and commit it; ``run(cmd, cwd)`` runs
+    each command and fails the test on error."""
     for name in PROJECT_FILES:
         src = REPO / name
         if src.is_dir():
@@ -30,7 +35,7 @@ def make_smoke_project(
     run(["git", "config", "user.email", "test@example.com"], root)
     run(["git", "config", "user.name", "test"], root)
     run(["dvc", "init", "-q"], root)
-    run(["adaptdiffuser", "profile", "smoke"], root)
+    run(["adaptdiffuser", "profile", profile, *(["--tiny"] if tiny else [])], root)
     if edit is not None:
         edit(root / "params.yaml")
     run(["git", "add", "-A"], root)

@@ -392,13 +392,17 @@ def sweep(
 
 @app.command()
 def profile(
-    name: Annotated[str, typer.Argument(help="quick, smoke, paper-umaze, paper-medium or paper-large")],
+    name: Annotated[str, typer.Argument(help="a profile of profiles/: quick, smoke, science, paper-large...")],
     params: ParamsPath = Path("params.yaml"),
     profiles_dir: Annotated[Path, typer.Option(help="folder of profile files")] = Path("profiles"),
+    tiny: Annotated[
+        bool, typer.Option(help="the profile at tiny scale: same shapes and code paths, runs in minutes")
+    ] = False,
 ) -> None:
     """Switch params.yaml to a profile (profiles/quick.yaml overlaid with profiles/<name>.yaml)."""
-    out = _guarded(lambda: apply_profile(name, profiles_dir, params))
-    typer.echo(f"{out} now holds profile {name!r}; run `dvc repro`")
+    out = _guarded(lambda: apply_profile(name, profiles_dir, params, tiny=tiny))
+    scale = " at tiny scale" if tiny else ""
+    typer.echo(f"{out} now holds profile {name!r}{scale}; run `dvc repro`")
 
 
 @app.command("set")

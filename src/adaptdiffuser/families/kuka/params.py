@@ -4,7 +4,7 @@ scripted stacking demonstrator, and the two evaluations (stacking, seen; pick-an
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -130,6 +130,11 @@ class KukaTaskParams(BaseModel):
         """The unseen task's evaluation, one line (``adaptdiffuser check``)."""
         p = self.pick_place
         return f"pick-and-place, {p.episodes} episodes in each of setups {p.setups}"
+
+    def tiny(self, task: TaskParams) -> dict[str, Any]:
+        """This family's keys at tiny scale (``adaptdiffuser profile NAME --tiny``): two demonstrations, one
+        pick-and-place episode per setup."""
+        return {"collect": {"episodes": 2}, "pick_place": {"episodes": 1, "batch_size": 1}}
 
     def check_name(self, name: str) -> None:
         if name not in TASK_NAMES:

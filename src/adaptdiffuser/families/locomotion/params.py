@@ -3,7 +3,7 @@ recipe, the value function and the value-guided planner. Light to import (no sim
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -152,6 +152,18 @@ class LocomotionTaskParams(BaseModel):
         """The collect stage's recipe, one line (``adaptdiffuser check``)."""
         b = self.behaviour
         return f"{b.algorithm} behaviour policy to score {b.medium_score:g}, {b.dataset_steps} dataset steps per part"
+
+    def tiny(self, task: TaskParams) -> dict[str, Any]:
+        """This family's keys at tiny scale (``adaptdiffuser profile NAME --tiny``): a few PPO updates with no
+        score band, a few hundred dataset steps, two value steps, two samples per decision, short episodes."""
+        return {
+            "episode_steps": task.diffusion.horizon,
+            "behaviour": {"max_train_steps": 1024, "max_expert_steps": 1536, "ppo_n_steps": 256, "batch_size": 64,
+                          "eval_every": 512, "eval_episodes": 1, "dataset_steps": 1000, "episode_steps": 200,
+                          "torch_threads": 1, "medium_band": None, "learning_starts": 100},  # fmt: skip
+            "value": {"steps": 2, "batch_size": 4, "log_every": 1},
+            "guide": {"n_samples": 2},
+        }
 
     def check_name(self, name: str) -> None:
         """The name says the robot and the dataset, like ``walker2d-medium-replay``."""

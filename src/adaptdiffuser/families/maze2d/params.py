@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import field
-from typing import TYPE_CHECKING, Annotated, ClassVar, Literal
+from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 
 from pydantic import ValidationInfo, field_validator
 from pydantic.dataclasses import dataclass
@@ -139,6 +139,14 @@ class Maze2DTaskParams:
     def describe_unseen(self) -> str:
         """The unseen task's evaluation, one line (``adaptdiffuser check``)."""
         return f"{self.gold_coin.cases_per_kind} gold-coin cases per kind"
+
+    def tiny(self, task: TaskParams) -> dict[str, Any]:
+        """This family's keys at tiny scale (``adaptdiffuser profile NAME --tiny``): expert data enough for a few
+        episodes of one plan's length, one gold-coin case per kind."""
+        return {
+            "collect": {"steps": max(5000, 20 * task.diffusion.horizon)},
+            "gold_coin": {"cases_per_kind": 1, "batch_size": 2, "pictures": 1},
+        }
 
     @property
     def maze_name(self) -> str:

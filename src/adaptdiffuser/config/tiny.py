@@ -1,0 +1,62 @@
+"""Any profile at a tiny scale: the same tasks, phases, models (width, depth, horizon), samplers and code paths, with
+training steps, diffusion steps, episodes, datasets and generated batches shrunk so that the whole pipeline runs in
+about a minute on a CPU (``adaptdiffuser profile NAME --tiny``). It finds a profile's configuration and shape errors
+before a long run does; its scores mean nothing.
+
+The generic sections are shrunk here; each family shrinks its own keys (``tiny`` of its task params model, given the
+resolved task). Compiling is turned off (minutes per stage; ``tests/test_compiled.py`` runs the compiled path) and
+at most two training seeds are kept (the multi-seed path with half the stages of three)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from adaptdiffuser.config.merge import deep_merge
+from adaptdiffuser.config.params import Params
+from adaptdiffuser.config.tasks import TaskParams
+
+#: the most diffusion steps a tiny run keeps (the planner and generation samplers at most half of that)
+TINY_DIFFUSION_STEPS = 8
+TINY_SAMPLER_STEPS = 4
+TINY_PRETRAIN = {"steps": 2, "ema_start": 1, "ema_every": 1, "log_every": 1, "checkpoint_every": 1, "lr_warmup": 0}
+TINY_EVALUATE = {"episodes": 1, "batch_size": 1, "pictures": 1}
+TINY_GENERATE = {"tasks": 4, "batch_size": 4}
+
+
+def _generic_sections(task: TaskParams) -> dict[str, Any]:
+    """The generic sections of one task at tiny scale (its diffusion and sampler steps capped, not raised)."""
+    return {
+        "diffusion": {"n_steps": min(task.diffusion.n_steps, TINY_DIFFUSION_STEPS)},
+        "planner": {"sampler_steps": min(task.planner.sampler_steps, TINY_SAMPLER_STEPS)},
+        "pretrain": TINY_PRETRAIN,
+        "evaluate": TINY_EVALUATE,
+    }
+
+
+def tiny_overlay(params: Params, raw: dict[str, Any]) -> dict[str, Any]:
+    """What to merge over ``raw`` (the params file as written, validated as ``params``) to run it at tiny scale."""
+    overlay: dict[str, Any] = {
+        "compile": {"training": False, "sampling": False},
+        "seeds": list(params.seeds[:2]),
+        "pretrain": TINY_PRETRAIN,
+        "evaluate": TINY_EVALUATE,
+        "diffusion": {"n_steps": min(params.diffusion.n_steps, TINY_DIFFUSION_STEPS)},
+        "planner": {"sampler_steps": min(params.planner.sampler_steps, TINY_SAMPLER_STEPS)},
+        "evolution": {"generate": _tiny_generate(params.evolution.generate.sampler_steps)},
+    }
+    for phase in params.phases:  # a phase's own generation settings are shrunk too
+        overlay.setdefault("phases", {})[phase.name] = {"generate": _tiny_generate(phase.generate.sampler_steps)}
+    for name in raw.get("task") or {}:
+        task = params.resolve(name)
+        own = task.settings.tiny(task) if hasattr(task.settings, "tiny") else {}
+        overlay.setdefault("task", {})[name] = deep_merge(_generic_sections(task), own)
+    return overlay
+
+
+def _tiny_generate(sampler_steps: int) -> dict[str, Any]:
+    return TINY_GENERATE | {"sampler_steps": min(sampler_steps, TINY_SAMPLER_STEPS)}
+
+
+def shrink(raw: dict[str, Any], params: Params) -> dict[str, Any]:
+    """``raw`` (a params file's content, validated as ``params``) at tiny scale."""
+    return deep_merge(raw, tiny_overlay(params, raw))

@@ -1,0 +1,78 @@
+"""Every profile of ``profiles/`` runs end to end at tiny scale (``adaptdiffuser profile NAME --tiny``): the
+profile's own tasks, phases, model shapes, samplers and families, every stage DVC plans for it, so a configuration
+or shape error in a paper profile shows here rather than on a user's GPU.
+
+DVC plans the run (the stage graph of a real git + DVC repository: the stages and their commands, dependencies
+first); the stages then run in this process, each exactly as its ``pipeline/*.py`` script runs it, which saves each
+stage the seconds of starting an interpreter (``tests/test_pipeline.py`` runs ``dvc repro`` itself on the smoke
+profile)."""
+
+from __future__ import annotations
+
+import json
+import runpy
+import shlex
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from smoke_project import REPO, make_smoke_project, run_tool
+
+#: smoke is left out: tests/test_pipeline.py runs it through `dvc repro` itself, every stage a process of its own
+PROFILES = sorted(path.stem for path in (REPO / "profiles").glob("*.yaml") if path.stem != "smoke")
+
+
+def planned_commands(root: Path) -> list[list[str]]:
+    """The commands of every stage of ``root``'s pipeline, each after the stages it depends on."""
+    import networkx as nx
+    from dvc.repo import Repo
+
+    with Repo(str(root)) as repo:
+        graph = repo.index.graph  # an edge runs from a stage to a stage it depends on
+        return [shlex.split(stage.cmd) for stage in reversed(list(nx.topological_sort(graph))) if stage.cmd]
+
+
+def run_stage_in_process(argv: list[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """``python pipeline/<stage>.py ARGS`` in this process (cwd: the project), failing the test on a non-zero exit."""
+    script = argv[1]
+    with monkeypatch.context() as m:
+        m.setattr(sys, "argv", argv[1:])
+        try:
+            runpy.run_path(script, run_name="__main__")
+        except SystemExit as exc:
+            assert exc.code in (0, None), f"{' '.join(argv)} exited with {exc.code}"
+
+
+def test_tiny_keeps_the_profiles_shapes_and_shrinks_its_work(tmp_path: Path) -> None:
+    from adaptdiffuser.config import apply_profile, load_params
+
+    full = load_params(apply_profile("paper-kuka", REPO / "profiles", tmp_path / "full.yaml"))
+    tiny = load_params(apply_profile("paper-kuka", REPO / "profiles", tmp_path / "tiny.yaml", tiny=True))
+    a, b = full.resolve("kuka-stacking"), tiny.resolve("kuka-stacking")
+    assert (b.model, b.diffusion.horizon, b.planner.sampler) == (a.model, a.diffusion.horizon, a.planner.sampler)
+    assert b.pretrain.steps < a.pretrain.steps and b.diffusion.n_steps < a.diffusion.n_steps
+    assert b.settings.collect.episodes < a.settings.collect.episodes
+    assert b.evaluate.episodes == 1 and not tiny.compile.training
+    assert tiny.phases and [p.name for p in tiny.phases] == [p.name for p in full.phases]
+    assert "--tiny" in (tmp_path / "tiny.yaml").read_text().splitlines()[0]
+
+
+@pytest.mark.parametrize("profile", PROFILES)
+def test_every_profile_runs_end_to_end_at_tiny_scale(
+    profile: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    root = make_smoke_project(tmp_path, run_tool, profile=profile, tiny=True)
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    commands = planned_commands(root)
+    scripts = [argv[1] for argv in commands]
+    assert "pipeline/pretrain.py" in scripts and "pipeline/report.py" in scripts
+    monkeypatch.chdir(root)
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    for argv in commands:
+        run_stage_in_process(argv, monkeypatch)
+    summary = json.loads((root / "metrics" / "summary.json").read_text())
+    assert set(summary) == set(params["tasks"])
+    if params.get("evolve") and params.get("phases"):
+        phases = [key for key in summary[params["evolve"]] if key.startswith("phase_")]
+        assert len(phases) == len(params["phases"]) + 1, phases
