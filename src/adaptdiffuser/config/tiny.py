@@ -4,8 +4,10 @@ about a minute on a CPU (``adaptdiffuser profile NAME --tiny``). It finds a prof
 before a long run does; its scores mean nothing.
 
 The generic sections are shrunk here; each family shrinks its own keys (``tiny`` of its task params model, given the
-resolved task). Compiling is turned off (minutes per stage; ``tests/test_compiled.py`` runs the compiled path) and
-at most two training seeds are kept (the multi-seed path with half the stages of three)."""
+resolved task). Compiling is turned off (minutes per stage; ``tests/test_compiled.py`` runs the compiled path), and
+the first training seed and the first evolution phase are kept: later seeds and phases run the same stages with the
+same settings on other inputs (the smoke pipeline runs two phases, ``tests/test_training_seeds.py`` several
+seeds)."""
 
 from __future__ import annotations
 
@@ -15,10 +17,10 @@ from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.params import Params
 from adaptdiffuser.config.tasks import TaskParams
 
-#: the most diffusion steps a tiny run keeps (the planner and generation samplers at most half of that)
-TINY_DIFFUSION_STEPS = 8
+#: the most diffusion steps a tiny run keeps, and the most steps of its planner and generation samplers
+TINY_DIFFUSION_STEPS = 4
 TINY_SAMPLER_STEPS = 4
-TINY_PRETRAIN = {"steps": 2, "ema_start": 1, "ema_every": 1, "log_every": 1, "checkpoint_every": 1, "lr_warmup": 0}
+TINY_PRETRAIN = {"steps": 2, "ema_start": 1, "ema_every": 1, "log_every": 1, "checkpoint_every": 2, "lr_warmup": 0}
 TINY_EVALUATE = {"episodes": 1, "batch_size": 1, "pictures": 1}
 TINY_GENERATE = {"tasks": 4, "batch_size": 4}
 
@@ -34,18 +36,22 @@ def _generic_sections(task: TaskParams) -> dict[str, Any]:
 
 
 def tiny_overlay(params: Params, raw: dict[str, Any]) -> dict[str, Any]:
-    """What to merge over ``raw`` (the params file as written, validated as ``params``) to run it at tiny scale."""
+    """What to merge over ``raw`` (the params file as written, validated as ``params``) to run it at tiny scale;
+    its ``phases`` replace the file's."""
     overlay: dict[str, Any] = {
         "compile": {"training": False, "sampling": False},
-        "seeds": list(params.seeds[:2]),
+        "seeds": list(params.seeds[:1]),
         "pretrain": TINY_PRETRAIN,
         "evaluate": TINY_EVALUATE,
         "diffusion": {"n_steps": min(params.diffusion.n_steps, TINY_DIFFUSION_STEPS)},
         "planner": {"sampler_steps": min(params.planner.sampler_steps, TINY_SAMPLER_STEPS)},
         "evolution": {"generate": _tiny_generate(params.evolution.generate.sampler_steps)},
     }
-    for phase in params.phases:  # a phase's own generation settings are shrunk too
-        overlay.setdefault("phases", {})[phase.name] = {"generate": _tiny_generate(phase.generate.sampler_steps)}
+    if params.phases:  # the first phase, its own generation settings shrunk too
+        first = params.phases[0]
+        raw_first = dict((raw.get("phases") or {}).get(first.name) or {})
+        generate = deep_merge(dict(raw_first.get("generate") or {}), _tiny_generate(first.generate.sampler_steps))
+        overlay["phases"] = {first.name: raw_first | {"generate": generate}}
     for name in raw.get("task") or {}:
         task = params.resolve(name)
         own = task.settings.tiny(task) if hasattr(task.settings, "tiny") else {}
@@ -59,4 +65,8 @@ def _tiny_generate(sampler_steps: int) -> dict[str, Any]:
 
 def shrink(raw: dict[str, Any], params: Params) -> dict[str, Any]:
     """``raw`` (a params file's content, validated as ``params``) at tiny scale."""
-    return deep_merge(raw, tiny_overlay(params, raw))
+    overlay = tiny_overlay(params, raw)
+    tiny = deep_merge(raw, overlay)
+    if "phases" in overlay:  # the first phase replaces the list, it is not merged into it
+        tiny["phases"] = overlay["phases"]
+    return tiny

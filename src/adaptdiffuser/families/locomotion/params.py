@@ -155,14 +155,14 @@ class LocomotionTaskParams(BaseModel):
 
     def tiny(self, task: TaskParams) -> dict[str, Any]:
         """This family's keys at tiny scale (``adaptdiffuser profile NAME --tiny``): a few PPO updates with no
-        score band, a few hundred dataset steps, two value steps, two samples per decision, short episodes."""
+        score band, a few hundred dataset steps, two value steps, two samples per decision guided once, short episodes."""
         return {
             "episode_steps": task.diffusion.horizon,
             "behaviour": {"max_train_steps": 1024, "max_expert_steps": 1536, "ppo_n_steps": 256, "batch_size": 64,
                           "eval_every": 512, "eval_episodes": 1, "dataset_steps": 1000, "episode_steps": 200,
                           "torch_threads": 1, "medium_band": None, "learning_starts": 100},  # fmt: skip
             "value": {"steps": 2, "batch_size": 4, "log_every": 1},
-            "guide": {"n_samples": 2},
+            "guide": {"n_samples": 2, "n_guide_steps": 1},
         }
 
     def check_name(self, name: str) -> None:
