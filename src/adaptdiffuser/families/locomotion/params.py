@@ -155,7 +155,8 @@ class LocomotionTaskParams(BaseModel):
 
     def tiny(self, task: TaskParams) -> dict[str, Any]:
         """This family's keys at tiny scale (``adaptdiffuser profile NAME --tiny``): a few PPO updates with no
-        score band, a few hundred dataset steps, two value steps, two samples per decision guided once, short episodes."""
+        score band, a few hundred dataset steps, two value steps, two samples per decision guided once, episodes
+        one plan long."""
         return {
             "episode_steps": task.diffusion.horizon,
             "behaviour": {"max_train_steps": 1024, "max_expert_steps": 1536, "ppo_n_steps": 256, "batch_size": 64,
