@@ -159,9 +159,19 @@ class LocomotionTaskParams(BaseModel):
         one plan long."""
         return {
             "episode_steps": task.diffusion.horizon,
-            "behaviour": {"max_train_steps": 1024, "max_expert_steps": 1536, "ppo_n_steps": 256, "batch_size": 64,
-                          "eval_every": 512, "eval_episodes": 1, "dataset_steps": 1000, "episode_steps": 200,
-                          "torch_threads": 1, "medium_band": None, "learning_starts": 100},  # fmt: skip
+            "behaviour": {
+                "max_train_steps": 1024,
+                "max_expert_steps": 1536,
+                "ppo_n_steps": 256,
+                "batch_size": 64,
+                "eval_every": 512,
+                "eval_episodes": 1,
+                "dataset_steps": 1000,
+                "episode_steps": 200,
+                "torch_threads": 1,
+                "medium_band": None,
+                "learning_starts": 100,
+            },
             "value": {"steps": 2, "batch_size": 4, "log_every": 1},
             "guide": {"n_samples": 2, "n_guide_steps": 1},
         }
