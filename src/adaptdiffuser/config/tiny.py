@@ -25,11 +25,12 @@ TINY_EVALUATE = {"episodes": 1, "batch_size": 1, "pictures": 1}
 TINY_GENERATE = {"tasks": 4, "batch_size": 4}
 
 
-def _generic_sections(task: TaskParams) -> dict[str, Any]:
-    """The generic sections of one task at tiny scale (its diffusion and sampler steps capped, not raised)."""
+def _generic_sections(sections: Params | TaskParams) -> dict[str, Any]:
+    """The generic sections (top-level or one task's) at tiny scale: diffusion and sampler steps capped, not
+    raised."""
     return {
-        "diffusion": {"n_steps": min(task.diffusion.n_steps, TINY_DIFFUSION_STEPS)},
-        "planner": {"sampler_steps": min(task.planner.sampler_steps, TINY_SAMPLER_STEPS)},
+        "diffusion": {"n_steps": min(sections.diffusion.n_steps, TINY_DIFFUSION_STEPS)},
+        "planner": {"sampler_steps": min(sections.planner.sampler_steps, TINY_SAMPLER_STEPS)},
         "pretrain": TINY_PRETRAIN,
         "evaluate": TINY_EVALUATE,
     }
@@ -41,10 +42,7 @@ def tiny_overlay(params: Params, raw: dict[str, Any]) -> dict[str, Any]:
     overlay: dict[str, Any] = {
         "compile": {"training": False, "sampling": False},
         "seeds": list(params.seeds[:1]),
-        "pretrain": TINY_PRETRAIN,
-        "evaluate": TINY_EVALUATE,
-        "diffusion": {"n_steps": min(params.diffusion.n_steps, TINY_DIFFUSION_STEPS)},
-        "planner": {"sampler_steps": min(params.planner.sampler_steps, TINY_SAMPLER_STEPS)},
+        **_generic_sections(params),
         "evolution": {"generate": _tiny_generate(params.evolution.generate.sampler_steps)},
     }
     if params.phases:  # the first phase, its own generation settings shrunk too
