@@ -2,10 +2,10 @@
 path as another CPU's rounding would (another seed, another torch thread count), per locomotion task.
 
 For each task and variation: train the behaviour policy with the band search (``medium_score +- medium_band``),
-record the ``medium`` dataset, and print the chosen checkpoint, its confirmed score, the dataset's mean normalized
-score over its episodes (as the reference stage reports it), how often training went back, and the time (printed,
-never asserted). Writes every figure as JSON after each variation; run again with the same ``--out``, it skips the
-variations already there (a stopped run goes on).
+which records the ``medium`` dataset, and print the chosen checkpoint, the score the search recorded (the dataset's),
+the stored dataset's mean normalized score over its episodes (as the reference stage reports it), how often training
+went back, and the time (printed, never asserted). Writes every figure as JSON after each variation; run again with
+the same ``--out``, it skips the variations already there (a stopped run goes on).
 
     python benchmarks/bench_behaviour_band.py [--tasks hopper-medium walker2d-medium halfcheetah-medium]
         [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 600000]

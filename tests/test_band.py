@@ -10,8 +10,17 @@ import numpy as np
 import pytest
 
 from adaptdiffuser.families.locomotion.band import Band, BandNotReachedError, search_band
-from adaptdiffuser.families.locomotion.behaviour import _Recorder, train_behaviour
+from adaptdiffuser.families.locomotion.behaviour import (
+    _Recorder,
+    collect_locomotion_dataset,
+    load_behaviour_policy,
+    record_medium_rollouts,
+    train_behaviour,
+)
+from adaptdiffuser.families.locomotion.family import episode_returns
 from adaptdiffuser.families.locomotion.params import BehaviourSettings
+from adaptdiffuser.families.locomotion.reference import normalized_score
+from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator
 
 BAND = Band(33.0, 3.0)
 
@@ -21,7 +30,7 @@ class CurveTrainee:
 
     def __init__(self, curve: Callable[[int], float]) -> None:
         self.curve, self.at, self.band_measured, self.stderr = curve, 0, 0, 0.0
-        self.confirmed: list[int] = []  # the steps of each fresh confirmation
+        self.confirmed: list[int] = []  # the steps of each dataset recorded
 
     def train(self, steps: int) -> int:
         self.at += steps
@@ -78,24 +87,24 @@ def test_a_curve_that_never_reaches_the_band_is_refused_naming_the_settings() ->
 
 
 def test_a_score_is_confirmed_before_it_is_chosen() -> None:
-    """A cheap score inside the band whose confirmation is below it does not end the search."""
+    """A cheap score inside the band whose dataset scores below it does not end the search."""
     trainee = CurveTrainee(lambda steps: 31.0 + steps / 10_000)
     trainee.band_score = lambda: (trainee.curve(trainee.at) - 3.0, 0.0)  # type: ignore[method-assign]
     choice = search_band(trainee, BAND, 10_000, 2_048, 100_000)
     assert choice.steps == 20_000  # at 10 000: 32 quick, 29 on the band episodes
-    assert choice.score == pytest.approx(33.0)  # the fresh measurement (here the curve itself) is the one kept
+    assert choice.score == pytest.approx(33.0)  # the dataset's score (here the curve itself) is the one kept
 
 
-def test_a_lucky_band_score_is_not_chosen_when_fresh_episodes_put_the_policy_below_the_band() -> None:
+def test_a_lucky_band_score_is_not_chosen_when_its_dataset_scores_below_the_band() -> None:
     """The band score of the policy the search stops at is biased up (it is the luckiest of many measured on the
-    same episodes); a fresh measurement decides: 3 points of luck at 28.5 pass the band score, not the fresh one."""
+    same episodes); the dataset decides: 3 points of luck at 28.5 pass the band score, not the dataset."""
     trainee = CurveTrainee(lambda steps: 27.0 + steps / 10_000)
     trainee.band_score = lambda: (trainee.curve(trainee.at) + 3.0, 0.5)  # type: ignore[method-assign]
     trainee.stderr = 0.5
     records: list[dict] = []
     choice = search_band(trainee, BAND, 5_000, 2_048, 100_000, records.append)
     assert trainee.confirmed[0] == 5_000  # 27.5 + 3 = 30.5 holds; fresh 27.5 does not
-    assert choice.steps == 35_000 and choice.score == pytest.approx(30.5) and choice.stderr == 0.5  # the fresh score
+    assert choice.steps == 35_000 and choice.score == pytest.approx(30.5) and choice.stderr == 0.5  # the dataset's
     assert records[0]["action"] == "continue" and records[0]["confirm_score"] == pytest.approx(27.5)
     assert records[-1]["action"] == "choose" and records[-1]["band_score"] == pytest.approx(33.5)
 
@@ -121,7 +130,7 @@ def test_recorder_truncation_ends_the_cut_episode_with_a_timeout() -> None:
 
 
 TINY = {"max_train_steps": 600, "eval_every": 150, "min_eval_every": 150, "eval_episodes": 1, "band_episodes": 2,
-        "confirm_episodes": 3, "episode_steps": 60, "net_arch": [32, 32], "torch_threads": 1, "ppo_n_steps": 150,
+        "dataset_steps": 200, "episode_steps": 60, "net_arch": [32, 32], "torch_threads": 1, "ppo_n_steps": 150,
         "batch_size": 50}  # fmt: skip
 
 
@@ -142,10 +151,23 @@ def test_a_real_learner_is_chosen_inside_the_band_with_its_replay(tmp_path: Path
     summary = json.loads((tmp_path / "behaviour.json").read_text())
     medium = summary["medium"]
     assert medium["band"] == [-100.0, 100.0] and medium["steps"] == 150 and medium["rewinds"] == 0
-    last = summary["curve"][-1]  # the recorded score is the fresh confirmation's, not the band episodes'
-    assert (
-        medium["score_episodes"] == 3
-        and medium["normalized_score"] == last["confirm_score"] == last["normalized_score"]
-    )
+    last = summary["curve"][-1]  # the recorded score is the dataset's, not the band episodes'
+    assert medium["score_of"] == "dataset" and medium["normalized_score"] == last["confirm_score"]
     assert medium["score_stderr"] == last["confirm_stderr"] >= 0.0 and last["confirm_score"] != last["band_score"]
+    assert result.medium_rollouts is not None and len(result.medium_rollouts["episode"]) == 200
+    assert medium["score_episodes"] == len(np.unique(result.medium_rollouts["episode"])) > 1
     assert len(result.replay["episode"]) == 150 and (tmp_path / "medium.zip").exists()
+
+
+def test_the_collected_dataset_scores_what_the_band_search_recorded(tmp_path: Path) -> None:
+    """The band's promise is about the dataset: the stored dataset, scored as the reference stage scores it, is
+    exactly the chosen policy's recorded score, and it is the chosen policy's rollouts recorded again."""
+    settings = BehaviourSettings(seed=0, medium_score=0.0, medium_band=100.0, **TINY)
+    traj = collect_locomotion_dataset("hopper-medium", tmp_path / "collect", settings)
+    medium = json.loads((tmp_path / "collect" / "behaviour.json").read_text())["medium"]
+    scores = normalized_score(episode_returns(traj), "Hopper-v5")
+    assert len(traj.episode_id) == 200 and len(scores) == medium["score_episodes"]
+    assert float(scores.mean()) == medium["normalized_score"]
+    sim = LocomotionSimulator("Hopper-v5", episode_steps=60)
+    again = record_medium_rollouts(load_behaviour_policy(tmp_path / "collect"), sim, settings)
+    np.testing.assert_array_equal(again["action"].astype(np.float32), traj.action)

@@ -4,12 +4,13 @@ Float rounding differs between CPUs, so the same seeded learner follows another 
 evaluation every ``eval_every`` steps can jump over a narrow score range (30.8 -> 65.4 seen on Hopper). The search
 trains in chunks and evaluates after each; a score near the band is measured again on more episodes, as the data
 will be recorded; a score above the band sends training back to its last checkpoint below it, with a shorter
-interval and a fresh seed. A policy whose score lies inside the band by at least one standard error is measured
-once more on fresh episodes, never used to choose it: the search tries many policies on the same episodes, so the
-one it keeps scored high partly by luck (a Hopper policy at 32.6 +- 2.4 on 50 episodes recorded a dataset of
-27.9 +- 0.5). It is chosen when that fresh score lies inside the band by its standard error too; else the fresh
-score decides the next move. The search refuses when the step budget runs out. The rule is written against
-:class:`Trainee`, so it runs the same on a real learner and on a score curve.
+interval and a fresh seed. A policy whose score lies inside the band by at least one standard error then records
+the dataset itself, and is chosen only when the dataset's episodes lie inside the band by their standard error too:
+the band is a promise about the dataset, and the search tries many policies on the same evaluation episodes, so the
+one it stops at scored high partly by luck (a Hopper policy at 32.5 on 50 episodes, 31.3 on 100 fresh ones,
+recorded a dataset of 29.2 +- 0.2). Otherwise the dataset's score decides the next move. The search refuses when
+the step budget runs out. The rule is written against :class:`Trainee`, so it runs the same on a real learner and on
+a score curve.
 """
 
 from __future__ import annotations
@@ -65,7 +66,8 @@ class Trainee(Protocol):
         mean and its standard error."""
 
     def confirm_score(self) -> tuple[float, float]:
-        """The current policy's score as :meth:`band_score` measures it, on episodes no earlier measurement used."""
+        """The score of the dataset the current policy records (its episodes' mean and standard error): what the
+        band promises, and what is kept when this policy is chosen."""
 
     def snapshot(self) -> Any:
         """The current state, for :meth:`restore`."""
@@ -80,8 +82,8 @@ class BandNotReachedError(StageError):
 
 @dataclass(frozen=True)
 class BandChoice:
-    """The chosen policy: its training steps, its score on the fresh confirmation episodes and that score's
-    standard error, the steps spent in all (discarded paths included) and how many times training went back."""
+    """The chosen policy: its training steps, its dataset's score and that score's standard error, the steps
+    spent in all (discarded paths included) and how many times training went back."""
 
     steps: int
     score: float
@@ -99,10 +101,10 @@ def search_band(
     on_eval: Callable[[dict[str, Any]], None] = lambda record: None,
     setting: str = "behaviour",
 ) -> BandChoice:
-    """Train ``trainee`` until a policy's confirmed score lies in ``band`` (see the module's docstring); every
-    evaluation is passed to ``on_eval`` as ``{steps, spent, quick_score, band_score?, band_stderr?, confirm_score?,
-    confirm_stderr?, action}``. Raises
-    :class:`BandNotReachedError` naming the settings to change when ``budget`` steps are spent first."""
+    """Train ``trainee`` until a policy's dataset scores in ``band`` (see the module's docstring); every evaluation
+    is passed to ``on_eval`` as ``{steps, spent, quick_score, band_score?, band_stderr?, confirm_score?,
+    confirm_stderr?, action}`` (``confirm_*``: the dataset's). Raises :class:`BandNotReachedError` naming the
+    settings to change when ``budget`` steps are spent first."""
     spent, rewinds, interval = 0, 0, eval_every
     below = trainee.snapshot()
     highest = -float("inf")
@@ -116,12 +118,12 @@ def search_band(
             record["band_score"] = score
         highest = max(highest, score)
         if "band_score" in record and band.holds(score, record["band_stderr"]):
-            fresh, fresh_stderr = trainee.confirm_score()
-            record |= {"confirm_score": fresh, "confirm_stderr": fresh_stderr}
-            if band.holds(fresh, fresh_stderr):
+            data_score, data_stderr = trainee.confirm_score()
+            record |= {"confirm_score": data_score, "confirm_stderr": data_stderr}
+            if band.holds(data_score, data_stderr):
                 on_eval(record | {"action": "choose"})
-                return BandChoice(trainee.steps(), fresh, fresh_stderr, spent, rewinds)
-            score = fresh  # the unbiased measurement decides: below or inside goes on, above goes back
+                return BandChoice(trainee.steps(), data_score, data_stderr, spent, rewinds)
+            score = data_score  # the dataset's score decides: below or inside goes on, above goes back
         if score < band.low or ("band_score" in record and score in band):  # below, or inside but not surely
             on_eval(record | {"action": "continue"})
             below = trainee.snapshot()

@@ -206,6 +206,24 @@ def record_rollouts(
     return recorder.columns()
 
 
+def record_medium_rollouts(
+    policy: Any, sim: LocomotionSimulator, settings: BehaviourSettings, progress: bool = False
+) -> dict[str, np.ndarray]:
+    """The ``medium`` dataset's rollouts of ``policy`` (an SB3 model): ``dataset_steps`` steps with
+    ``rollout_noise``, from the settings' seed, so the same policy and settings give the same rows."""
+    rng = np.random.default_rng([settings.seed, 1])
+    return record_rollouts(sim, sb3_policy(policy), settings.dataset_steps, rng, settings.rollout_noise, progress,
+                           "medium rollouts")  # fmt: skip
+
+
+def rollout_scores(columns: dict[str, np.ndarray], env_id: str) -> np.ndarray:
+    """The normalized score of every episode of recorded rollouts (the last one cut where the recording ends), from
+    rewards rounded to the dataset's float32 as the reference stage scores the stored dataset."""
+    _, index = np.unique(columns["episode"], return_inverse=True)
+    returns = np.bincount(index, weights=columns["reward"].astype(np.float32).astype(np.float64))
+    return np.asarray(normalized_score(returns, env_id))
+
+
 # -- training -------------------------------------------------------------------------------------------------
 
 
@@ -257,6 +275,8 @@ class TrainingResult:
     curve: list[dict[str, float]]
     replay: dict[str, np.ndarray]
     medium: dict[str, Any]
+    #: the ``medium`` dataset's rollouts, recorded when the band search chose the policy (``None`` without a band)
+    medium_rollouts: dict[str, np.ndarray] | None = None
     expert: dict[str, Any] | None = None
     medium_policy: Any = None
     expert_policy: Any = None
@@ -317,9 +337,9 @@ def train_behaviour(
                 "wall_s": time.perf_counter() - start}  # fmt: skip
         return info, save(learner, name)
 
-    def medium_in_band(learner: Any, start: float) -> tuple[Any, dict[str, Any], Any]:
+    def medium_in_band(learner: Any, start: float) -> tuple[_Learner, dict[str, Any], Any]:
         band = Band(settings.medium_score, settings.medium_band)
-        trainee = _Learner(learner, train_env, recorder, eval_sim, settings, _Bar)
+        trainee = _Learner(learner, train_env, recorder, eval_sim, settings, _Bar, progress)
 
         def on_eval(record: dict[str, Any]) -> None:
             score = record.get("confirm_score", record.get("band_score", record["quick_score"]))
@@ -331,23 +351,26 @@ def train_behaviour(
                              on_eval, setting=setting)  # fmt: skip
         info = {"file": "medium.zip", "target": settings.medium_score, "band": [band.low, band.high],
                 "reached": True, "steps": choice.steps, "normalized_score": choice.score,
-                "score_stderr": choice.stderr, "score_episodes": settings.confirm_episodes,
+                "score_stderr": choice.stderr, "score_of": "dataset",
+                "score_episodes": len(np.unique(trainee.recorded["episode"])),
                 "score_noise": settings.rollout_noise,
                 "spent_steps": choice.spent, "rewinds": choice.rewinds,
                 "wall_s": time.perf_counter() - start}  # fmt: skip
-        return trainee.learner, info, save(trainee.learner, "medium")
+        return trainee, info, save(trainee.learner, "medium")
 
     with _torch_threads(settings.torch_threads):
         train_env = _SimEnv(sim, recorder)
         learner = make_learner(train_env, settings)
         start = time.perf_counter()
+        rollouts = None
         if settings.medium_band is None:
             medium, medium_policy = phase(learner, settings.medium_score, settings.max_train_steps, "medium", start)
         else:
-            learner, medium, medium_policy = medium_in_band(learner, start)
+            trainee, medium, medium_policy = medium_in_band(learner, start)
+            learner, rollouts = trainee.learner, trainee.recorded
         summary["medium"] = medium
         replay = recorder.columns(len(recorder))
-        result = TrainingResult(learner, curve, replay, medium, medium_policy=medium_policy)
+        result = TrainingResult(learner, curve, replay, medium, rollouts, medium_policy=medium_policy)
         if expert:
             train_env.recorder = None  # the replay after the medium point is not kept
             result.expert, result.expert_policy = phase(
@@ -367,13 +390,14 @@ def _mean_and_stderr(scores: np.ndarray) -> tuple[float, float]:
 class _Learner:
     """An SB3 learner as the band search's :class:`~adaptdiffuser.families.locomotion.band.Trainee`: snapshots are
     the saved learner (policy, optimizer, step count) with the replay recorder's length; going back reloads it,
-    cuts the recorder there and reseeds (an off-policy learner restarts its replay buffer)."""
+    cuts the recorder there and reseeds (an off-policy learner restarts its replay buffer). Its confirmation records
+    the ``medium`` dataset, kept in :attr:`recorded`: the chosen policy's recording is the dataset."""
 
     def __init__(self, learner: Any, env: _SimEnv, recorder: _Recorder, eval_sim: LocomotionSimulator,
-                 settings: BehaviourSettings, callback: type) -> None:  # fmt: skip
+                 settings: BehaviourSettings, callback: type, progress: bool = False) -> None:  # fmt: skip
         self.learner, self.env, self.recorder = learner, env, recorder
-        self.eval_sim, self.settings, self.callback = eval_sim, settings, callback
-        self.confirmations = 0
+        self.eval_sim, self.settings, self.callback, self.progress = eval_sim, settings, callback, progress
+        self.recorded: dict[str, np.ndarray] = {}
 
     def train(self, steps: int) -> int:
         before = self.learner.num_timesteps
@@ -396,9 +420,8 @@ class _Learner:
         return _mean_and_stderr(self._scores(self.settings.band_episodes, self.settings.eval_seed + 1))
 
     def confirm_score(self) -> tuple[float, float]:
-        self.confirmations += 1  # each confirmation on episodes of its own
-        seed = derive_seed(self.settings.eval_seed + 2, self.confirmations)
-        return _mean_and_stderr(self._scores(self.settings.confirm_episodes, seed))
+        self.recorded = record_medium_rollouts(self.learner, self.eval_sim, self.settings, self.progress)
+        return _mean_and_stderr(rollout_scores(self.recorded, self.eval_sim.name))
 
     def snapshot(self) -> tuple[bytes, int]:
         buffer = io.BytesIO()
@@ -464,9 +487,10 @@ def collect_locomotion_dataset(
         parts = [result.replay]
     else:
         with _torch_threads(settings.torch_threads):
-            rng = np.random.default_rng([settings.seed, 1])
-            parts = [record_rollouts(sim, sb3_policy(result.medium_policy), settings.dataset_steps, rng,
-                                     settings.rollout_noise, progress, "medium rollouts")]  # fmt: skip
+            medium = result.medium_rollouts  # recorded by the band search when it chose the policy
+            if medium is None:
+                medium = record_medium_rollouts(result.medium_policy, sim, settings, progress)
+            parts = [medium]
             if kind == "medium-expert":
                 rng = np.random.default_rng([settings.seed, 2])
                 parts.append(record_rollouts(sim, sb3_policy(result.expert_policy), settings.dataset_steps, rng,

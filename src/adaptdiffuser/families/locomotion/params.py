@@ -61,11 +61,10 @@ class BehaviourSettings(BaseModel):
     #: the band goes back to its last checkpoint below it and evaluates more often. ``None``: no band (stop at the
     #: first evaluation at or above ``medium_score``, or at the budget's end; for tiny test budgets only)
     medium_band: FiniteFloat | None = Field(3.0, gt=0.0)
-    #: episodes of that measurement; the score must lie inside the band by one standard error of its mean
+    #: episodes of that measurement; the score must lie inside the band by one standard error of its mean. A
+    #: policy that passes records the ``medium`` dataset (``dataset_steps``) and is chosen only when the dataset's
+    #: episodes pass too: the dataset's score is what the band states
     band_episodes: int = Field(50, gt=1)
-    #: episodes of the fresh measurement a policy passing the band must pass too, on starts no other measurement
-    #: used (the search keeps the luckiest of many policies measured on the same episodes); its score is recorded
-    confirm_episodes: int = Field(100, gt=1)
     #: the shortest interval between evaluations when going back (rounded up to whole PPO rollouts)
     min_eval_every: int = Field(2_048, gt=0)
     #: normalized score the ``expert`` policy (``medium-expert`` only) trains on to
