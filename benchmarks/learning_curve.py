@@ -10,8 +10,14 @@ evaluation seconds) as soon as it is measured. Stopped at any point, the same co
 point: training resumes from its state in ``models/.resume/`` and the points already written are kept. For
 families whose planner needs no value function (Maze2D, KUKA).
 
+``--set KEY=VALUE`` (repeatable) changes one of the task's settings for this curve only, a dotted key under the
+task (``pretrain.lr=0.001``, ``model.dim=32``; the value is read as YAML), and ``--label`` names the variant in the
+output and resume files, so variants of one task and seed never share a resume state
+(``benchmarks/recipe_study.py`` runs many).
+
     python benchmarks/learning_curve.py WORKSPACE --task maze2d-medium --steps 40000 --every 4000
-        [--seed 7] [--episodes 30] [--training-seed 0] [--out curve.jsonl] [--device cpu]
+        [--seed 7] [--episodes 30] [--training-seed 0] [--set pretrain.lr=0.001 ...] [--label NAME]
+        [--out curve.jsonl] [--device cpu]
 
 WORKSPACE is a pipeline folder whose task has its dataset and reference (`dvc repro reference@<task>`).
 """
@@ -51,11 +57,19 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7, help="episode seed (default 7: validation, not evaluation)")
     parser.add_argument("--episodes", type=int, default=30)
     parser.add_argument("--training-seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=None, help="default: learning_curve-<task>-seed<s>.jsonl")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="a setting of the task for this curve, e.g. pretrain.lr=0.001 (repeatable)")  # fmt: skip
+    parser.add_argument("--label", default=None, help="the variant's name in the output and resume files")
+    parser.add_argument("--out", type=Path, default=None, help="default: learning_curve-<task>[-label]-seed<s>.jsonl")
     parser.add_argument("--device", default="auto")
     args = parser.parse_args()
     root = args.workspace.resolve()
     raw = yaml.safe_load((root / "params.yaml").read_text())
+    for override in args.overrides:
+        key, sep, value = override.partition("=")
+        if not sep or not key:
+            parser.error(f"--set {override!r}: expected KEY=VALUE, e.g. pretrain.lr=0.001")
+        raw = set_dotted(raw, f"task.{args.task}.{key}", yaml.safe_load(value))
     if args.seed == params_from_dict(raw).resolve(args.task).evaluate.seed:
         parser.error(f"--seed {args.seed} is the task's evaluation seed: choose settings on other episodes")
     raw = set_dotted(raw, f"task.{args.task}.evaluate.seed", args.seed)
@@ -67,7 +81,8 @@ def main() -> None:
         parser.error(f"{task.name}: the {task.family} planner needs a value function, which this curve does not train")
     device = resolve_device(args.device)
     ref = read_json(root / reference_path(task.name), f"reference of {task.name} (dvc repro reference@{task.name})")
-    out = args.out or root / f"learning_curve-{task.name}-seed{args.training_seed}.jsonl"
+    variant = f"{task.name}-{args.label}" if args.label else task.name
+    out = args.out or root / f"learning_curve-{variant}-seed{args.training_seed}.jsonl"
     points = [json.loads(line) for line in out.read_text().splitlines()] if out.exists() else []
     done = {point["step"] for point in points}
     if args.steps in done:
@@ -78,7 +93,7 @@ def main() -> None:
     cfg = dataclasses.replace(pretrain_config(task, args.training_seed), steps=args.steps, checkpoint_every=args.every)
     bundle, dataset = phase0_model(task, traj, cfg, {"expert": expert}, args.training_seed)
     run_id = fingerprint(task.section("model"), task.section("diffusion"), dataclasses.asdict(cfg), expert)
-    resume = root / "models" / ".resume" / f"learning-curve-{task.name}-seed{args.training_seed}.pt"
+    resume = root / "models" / ".resume" / f"learning-curve-{variant}-seed{args.training_seed}.pt"
     resume.parent.mkdir(parents=True, exist_ok=True)
     ev, pl = task.evaluate, task.planner
     print(

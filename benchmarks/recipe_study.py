@@ -1,0 +1,164 @@
+"""Training recipes side by side: a task's phase-0 score against training CPU-minutes, per recipe and training seed
+(printed, written and drawn, never asserted), to choose a recipe on validation episodes.
+
+A recipe file (YAML) gives each recipe its training steps and the task settings it changes:
+
+    today: {steps: 7000}
+    cosine: {steps: 3500, set: {pretrain.lr: 0.001, pretrain.lr_schedule: cosine, pretrain.lr_warmup: 100}}
+
+For every training seed and recipe, ``learning_curve.py`` runs in a process of its own (each pays its own compile,
+as a stage does) and evaluates every ``--every`` steps on validation episodes (``--seed``, never the evaluation
+seed). A stopped study goes on where it stopped: finished curves are kept, the unfinished one resumes. Then
+``summary.json`` in ``--out-dir`` holds per recipe the final score (mean +- standard error over training seeds, and
+per seed) and the training CPU minutes (this process's CPU time, all threads: other work on the machine does not
+count, so compare recipes measured on one machine), and ``recipes.png`` draws score against CPU minutes (mean over
+seeds).
+
+    python benchmarks/recipe_study.py WORKSPACE --task maze2d-umaze --recipes benchmarks/recipes/maze2d-umaze.yaml
+        [--training-seeds 0 1 2] [--every 500] [--episodes 50] [--seed 7] [--out-dir recipe-study]
+
+WORKSPACE is a pipeline folder whose task has its dataset and reference (``dvc repro reference@<task>``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from adaptdiffuser.evaluation import standard_error
+from adaptdiffuser.io import write_json
+
+HERE = Path(__file__).resolve().parent
+
+
+def load_recipes(path: Path) -> dict[str, dict[str, Any]]:
+    """``name -> {steps, set}`` from a recipe file; a clear error for a recipe without positive ``steps``."""
+    recipes = yaml.safe_load(path.read_text()) or {}
+    for name, recipe in recipes.items():
+        if not isinstance(recipe, dict) or not isinstance(recipe.get("steps"), int) or recipe["steps"] <= 0:
+            raise SystemExit(f"{path}: recipe {name!r} needs a positive integer 'steps'")
+        unknown = set(recipe) - {"steps", "set"}
+        if unknown:
+            raise SystemExit(f"{path}: recipe {name!r} has unknown keys {sorted(unknown)} (steps, set)")
+    return recipes
+
+
+def curve_path(out_dir: Path, name: str, seed: int) -> Path:
+    return out_dir / f"{name}-seed{seed}.jsonl"
+
+
+def read_curve(path: Path) -> list[dict[str, Any]]:
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def run_curve(args: argparse.Namespace, name: str, recipe: dict[str, Any], seed: int) -> None:
+    """One recipe and training seed through ``learning_curve.py`` (it resumes a stopped curve itself)."""
+    out = curve_path(args.out_dir, name, seed)
+    if any(point["step"] == recipe["steps"] for point in read_curve(out)):
+        return
+    command = [sys.executable, str(HERE / "learning_curve.py"), str(args.workspace), "--task", args.task,
+               "--steps", str(recipe["steps"]), "--every", str(min(args.every, recipe["steps"])),
+               "--seed", str(args.seed), "--episodes", str(args.episodes), "--training-seed", str(seed),
+               "--label", f"recipe-{name}", "--out", str(out), "--device", args.device]  # fmt: skip
+    for key, value in (recipe.get("set") or {}).items():
+        command += ["--set", f"{key}={json.dumps(value)}"]
+    print(f"== {name}, training seed {seed}: {recipe['steps']} steps {recipe.get('set') or {}}", flush=True)
+    subprocess.run(command, check=True)
+
+
+def summarize(recipes: dict[str, dict[str, Any]], out_dir: Path, seeds: list[int]) -> dict[str, Any]:
+    """Per recipe: the final points' score and CPU minutes over the training seeds whose curve is finished."""
+    summary: dict[str, Any] = {}
+    for name, recipe in recipes.items():
+        finals = {}
+        for seed in seeds:
+            last = [p for p in read_curve(curve_path(out_dir, name, seed)) if p["step"] == recipe["steps"]]
+            if last:
+                finals[seed] = last[0]
+        if not finals:
+            continue
+        scores = np.array([p["score_mean"] for p in finals.values()])
+        minutes = np.array([p["train_cpu_s"] / 60 for p in finals.values()])
+        summary[name] = {
+            "steps": recipe["steps"],
+            "set": recipe.get("set") or {},
+            "seeds": sorted(finals),
+            "score_mean": float(scores.mean()),
+            "score_stderr": standard_error(scores),
+            "score_per_seed": {str(s): p["score_mean"] for s, p in finals.items()},
+            "train_cpu_min_mean": float(minutes.mean()),
+            "train_cpu_min_per_seed": {str(s): round(p["train_cpu_s"] / 60, 2) for s, p in finals.items()},
+        }
+    return summary
+
+
+def draw(recipes: dict[str, dict[str, Any]], out_dir: Path, seeds: list[int], task: str) -> Path:
+    """Score against training CPU minutes, mean over the seeds that reached each step, one line per recipe."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for name in recipes:
+        by_step: dict[int, list[dict[str, Any]]] = {}
+        for seed in seeds:
+            for point in read_curve(curve_path(out_dir, name, seed)):
+                by_step.setdefault(point["step"], []).append(point)
+        if not by_step:
+            continue
+        steps = sorted(by_step)
+        minutes = [np.mean([p["train_cpu_s"] for p in by_step[s]]) / 60 for s in steps]
+        score = [np.mean([p["score_mean"] for p in by_step[s]]) for s in steps]
+        err = [standard_error(np.array([p["score_mean"] for p in by_step[s]])) for s in steps]
+        ax.errorbar(minutes, score, yerr=err, marker="o", ms=3, capsize=2, label=name)
+    ax.set_xlabel("training CPU minutes (all threads)")
+    ax.set_ylabel("normalized score (validation episodes)")
+    ax.set_title(f"{task}: phase-0 score against training CPU time, mean +- s.e. over seeds {seeds}")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    path = out_dir / "recipes.png"
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("workspace", type=Path)
+    parser.add_argument("--task", required=True)
+    parser.add_argument("--recipes", type=Path, required=True)
+    parser.add_argument("--training-seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--every", type=int, default=500)
+    parser.add_argument("--episodes", type=int, default=50)
+    parser.add_argument("--seed", type=int, default=7, help="episode seed (default 7: validation, not evaluation)")
+    parser.add_argument("--out-dir", type=Path, default=Path("recipe-study"))
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--summary-only", action="store_true", help="summarize and draw what is there, train none")
+    args = parser.parse_args()
+    recipes = load_recipes(args.recipes)
+    args.out_dir.mkdir(parents=True, exist_ok=True)
+    if not args.summary_only:
+        for seed in args.training_seeds:  # every recipe on one seed before the next: comparable early
+            for name, recipe in recipes.items():
+                run_curve(args, name, recipe, seed)
+    summary = summarize(recipes, args.out_dir, args.training_seeds)
+    write_json(args.out_dir / "summary.json", {"task": args.task, "validation_seed": args.seed,
+                                               "episodes": args.episodes, "recipes": summary})  # fmt: skip
+    picture = draw(recipes, args.out_dir, args.training_seeds, args.task)
+    for name, row in summary.items():
+        print(f"{name:28s} {row['steps']:6d} steps  score {row['score_mean']:6.1f} +- {row['score_stderr']:4.1f} "
+              f"over seeds {row['seeds']}  training {row['train_cpu_min_mean']:5.1f} CPU-min")  # fmt: skip
+    print(f"wrote {args.out_dir / 'summary.json'} and {picture}")
+
+
+if __name__ == "__main__":
+    main()
