@@ -48,6 +48,13 @@ class TrainedWorkspace:
         raw = self.raw if key is None else set_dotted(self.raw, f"task.{self.name}.{key}", value)
         return params_from_dict(raw).resolve(self.name)
 
+    def task_with(self, settings: dict[str, Any]) -> TaskParams:
+        """The task with each dotted ``task.<name>.<key>`` of ``settings`` set to its value."""
+        raw = self.raw
+        for key, value in settings.items():
+            raw = set_dotted(raw, f"task.{self.name}.{key}", value)
+        return params_from_dict(raw).resolve(self.name)
+
     def files(self) -> TaskFiles:
         return TaskFiles(self.root, self.name, self.model, self.training_seed)
 
