@@ -237,6 +237,7 @@ def test_tiny_run_is_deterministic_under_the_seed(tiny_runs) -> None:
     a, b, c = tiny_runs["medium"][0], tiny_runs["medium_again"][0], tiny_runs["medium_other"][0]
     for name in ("episode_id", "observation", "action", "reward", "terminal", "timeout", "sim_state"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert a.metadata == b.metadata  # no wall-clock time in the file: the same seed writes the same bytes
     assert not np.array_equal(a.action, c.action)
     curve_a = json.loads((tiny_runs["medium"][1] / "behaviour.json").read_text())["curve"]
     curve_b = json.loads((tiny_runs["medium_again"][1] / "behaviour.json").read_text())["curve"]

@@ -480,8 +480,8 @@ def collect_locomotion_dataset(
         "env_id": env_id,
         "dataset": kind,
         "settings": settings.model_dump(),
-        "medium": result.medium,
-        "expert": result.expert,
+        "medium": _without_times(result.medium),
+        "expert": _without_times(result.expert),
     }
     if kind == "medium-replay":
         parts = [result.replay]
@@ -496,6 +496,12 @@ def collect_locomotion_dataset(
                 parts.append(record_rollouts(sim, sb3_policy(result.expert_policy), settings.dataset_steps, rng,
                                              settings.rollout_noise, progress, "expert rollouts"))  # fmt: skip
     return to_trajectories(parts, task_name, sim, generator)
+
+
+def _without_times(info: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A policy's record as the dataset stores it: without wall-clock times, so that the same seed writes the same
+    dataset bytes on every run (``behaviour.json`` keeps the times)."""
+    return None if info is None else {key: value for key, value in info.items() if key != "wall_s"}
 
 
 def load_behaviour_policy(out_dir: Path, which: Literal["medium", "expert"] = "medium") -> Any:
