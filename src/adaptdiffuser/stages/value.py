@@ -4,13 +4,16 @@ trains it after the diffusion model, for families that use one."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import mlflow
 import numpy as np
 import torch
 
-from adaptdiffuser.checkpoint import load_bundle
+from adaptdiffuser.checkpoint import ModelBundle, load_bundle
 from adaptdiffuser.config import Params
+from adaptdiffuser.config.tasks import TaskParams
+from adaptdiffuser.config.value import ValueSettings
 from adaptdiffuser.data.returns import ValueWindowDataset
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import take_episodes
@@ -20,6 +23,7 @@ from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed, training_seed
 from adaptdiffuser.stages.training_data import expert_training_data
 from adaptdiffuser.tooling.mlflow_logging import stage_run
+from adaptdiffuser.training import LogFn
 from adaptdiffuser.value_training import heldout_r2, save_value, train_value
 
 #: windows of the held-out episodes the value's R^2 is measured on
@@ -37,54 +41,74 @@ def split_heldout(traj: Trajectories, fraction: float, seed: int) -> tuple[Traje
     return take_episodes(traj, np.setdiff1d(np.arange(n), held)), take_episodes(traj, held)
 
 
+def fit_value(
+    task: TaskParams,
+    bundle: ModelBundle,
+    traj: Trajectories,
+    seed: int,
+    device: torch.device,
+    progress: bool = True,
+    on_log: LogFn | None = None,
+) -> tuple[ValueNetwork, dict[str, Any], list[tuple[int, float]]]:
+    """Train training seed ``seed``'s value network of ``task`` on ``traj``'s windows, noised with ``bundle``'s
+    diffusion schedule and scaled by its normalizer, less the held-out episodes (``value.holdout_fraction``) on
+    which its R^2 is then measured. Returns the network, its fit (``episodes``, ``heldout_episodes``, ``r2``,
+    ``r2_t0``, ``windows``, ``parameters``) and the logged losses. Only the bundle's schedule and normalizer are
+    used, never its weights: the value of a model is that of any model of the same data and schedule."""
+    net_settings = task.settings.value_model
+    settings = value_settings(task, seed)
+    traj, heldout = split_heldout(traj, settings.holdout_fraction, derive_seed(settings.seed, 1))
+    dataset = ValueWindowDataset(
+        traj, task.diffusion.horizon, bundle.normalizer, settings.discount, settings.terminal_penalty
+    )
+    torch.manual_seed(settings.seed)
+    net = ValueNetwork(
+        bundle.diffusion.transition_dim,
+        task.diffusion.horizon,
+        dim=net_settings.dim,
+        dim_mults=tuple(net_settings.dim_mults),
+        kernel_size=task.model.kernel_size,
+    )
+    history = train_value(net, bundle.diffusion, dataset, settings, device, progress=progress, on_log=on_log)
+    fit: dict[str, Any] = {"episodes": len(traj.episodes()), "heldout_episodes": 0, "training_windows": len(dataset),
+                           "parameters": sum(p.numel() for p in net.parameters())}  # fmt: skip
+    if heldout is not None:
+        held = ValueWindowDataset(
+            heldout, task.diffusion.horizon, bundle.normalizer, settings.discount, settings.terminal_penalty
+        )
+        fit |= heldout_r2(net, bundle.diffusion, held, HELDOUT_WINDOWS, derive_seed(settings.seed, 2), device)
+        fit["heldout_episodes"] = len(heldout.episodes())
+    return net, fit, history
+
+
+def value_settings(task: TaskParams, seed: int) -> ValueSettings:
+    """The task's value settings for training seed ``seed`` (its own seed derived from it)."""
+    return task.settings.value.model_copy(update={"seed": training_seed(task.settings.value.seed, seed)})
+
+
 def run_value(
     params: Params, task_name: str, root: Path, device: torch.device, seed: int, progress: bool = True
 ) -> Path:
-    """Regress the discounted return-to-go of training seed ``seed``'s phase-0 training windows, noised with its
-    diffusion schedule and scaled by its normalizer, less the held-out episodes (``value.holdout_fraction``) on
-    which its R^2 is measured (MLflow ``value_heldout_r2``, ``value_heldout_r2_t0``; ``heldout`` in the value's
-    ``config.json``); write ``models/<task>/phase0/seed<s>/value``."""
+    """Stage part ``value`` of ``pretrain@<task>``: :func:`fit_value` on training seed ``seed``'s phase-0 training
+    data with its phase-0 model's schedule and normalizer (MLflow ``value_heldout_r2``, ``value_heldout_r2_t0``;
+    ``heldout`` in the value's ``config.json``); write ``models/<task>/phase0/seed<s>/value``."""
     task = params.resolve(task_name)
-    net_settings = task.settings.value_model
-    settings = task.settings.value.model_copy(update={"seed": training_seed(task.settings.value.seed, seed)})
+    settings = value_settings(task, seed)
     bundle = load_bundle(root / model_dir(task.name, 0, seed), "cpu")
     traj, data = expert_training_data(task, root, seed)
-    traj, heldout = split_heldout(traj, settings.holdout_fraction, derive_seed(settings.seed, 1))
     logged = {
         "value": settings.model_dump(),
-        "value_model": net_settings.model_dump(),
+        "value_model": task.settings.value_model.model_dump(),
         "data": {"expert": data},
         "seed": seed,
     }
     with stage_run(task.name, "value", 0, logged, root, seed=seed):
-        dataset = ValueWindowDataset(
-            traj, task.diffusion.horizon, bundle.normalizer, settings.discount, settings.terminal_penalty
-        )
-        torch.manual_seed(settings.seed)
-        net = ValueNetwork(
-            bundle.diffusion.transition_dim,
-            task.diffusion.horizon,
-            dim=net_settings.dim,
-            dim_mults=tuple(net_settings.dim_mults),
-            kernel_size=task.model.kernel_size,
-        )
-        mlflow.log_metrics({"windows": len(dataset), "parameters": sum(p.numel() for p in net.parameters())})
-        history = train_value(
-            net,
-            bundle.diffusion,
-            dataset,
-            settings,
-            device,
-            progress=progress,
+        net, fit, history = fit_value(
+            task, bundle, traj, seed, device, progress,
             on_log=lambda step, loss: mlflow.log_metric("value_loss", loss, step=step),
-        )
-        fit = {"episodes": len(traj.episodes()), "heldout_episodes": 0}
-        if heldout is not None:
-            held = ValueWindowDataset(
-                heldout, task.diffusion.horizon, bundle.normalizer, settings.discount, settings.terminal_penalty
-            )
-            fit |= heldout_r2(net, bundle.diffusion, held, HELDOUT_WINDOWS, derive_seed(settings.seed, 2), device)
-            fit["heldout_episodes"] = len(heldout.episodes())
+        )  # fmt: skip
+        mlflow.log_metrics({"windows": fit.pop("training_windows"), "parameters": fit.pop("parameters")})
+        if fit["heldout_episodes"]:
             mlflow.log_metrics({"value_heldout_r2": fit["r2"], "value_heldout_r2_t0": fit["r2_t0"]})
         out = root / value_dir(task.name, seed)
         info = {"settings": settings.model_dump(), "task": task.name, "data": data, "heldout": fit}
