@@ -7,8 +7,13 @@ one training seed) up to ``--steps``, and every ``--every`` steps evaluates the 
 ``--out`` (JSON lines: step, score mean and standard error, success rate where the family reports it, the
 training's CPU seconds so far (this process's: other work on the machine does not count) and its wall seconds,
 evaluation seconds) as soon as it is measured. Stopped at any point, the same command continues from the last
-point: training resumes from its state in ``models/.resume/`` and the points already written are kept. For
-families whose planner needs no value function (Maze2D, KUKA).
+point: training resumes from its state in ``models/.resume/`` and the points already written are kept.
+
+For a family whose planner is guided by a value function (locomotion), the curve first trains the task's value
+network as ``pretrain@<task>`` does (its ``value`` and ``value_model`` settings; it needs the diffusion model's
+schedule and normalizer only, not its weights) into the curve's own folder under ``models/.resume/``, and every point
+is evaluated with it: its CPU seconds open the curve's ``train_cpu_s`` and each point carries its held-out R^2
+(``value_r2``, ``value_r2_t0``).
 
 ``--set KEY=VALUE`` (repeatable) changes one of the task's settings for this curve only, a dotted key under the
 task (``pretrain.lr=0.001``, ``model.dim=32``; the value is read as YAML), and ``--label`` names the variant in the
@@ -34,8 +39,11 @@ import numpy as np
 import torch
 import yaml
 
+from adaptdiffuser.checkpoint import ModelBundle
 from adaptdiffuser.config import params_from_dict, set_dotted
+from adaptdiffuser.config.tasks import TaskParams
 from adaptdiffuser.contract import TaskFiles
+from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
 from adaptdiffuser.family_registry import get_family
@@ -45,7 +53,9 @@ from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import resolve_device
 from adaptdiffuser.stages.pretrain import phase0_model
 from adaptdiffuser.stages.training_data import expert_training_data, pretrain_config
+from adaptdiffuser.stages.value import fit_value
 from adaptdiffuser.training import fingerprint, train
+from adaptdiffuser.value_training import load_value, save_value
 
 
 def main() -> None:
@@ -77,8 +87,6 @@ def main() -> None:
     params = params_from_dict(raw)
     task = params.resolve(args.task)
     family = get_family(task.family)
-    if family.uses_value_function:
-        parser.error(f"{task.name}: the {task.family} planner needs a value function, which this curve does not train")
     device = resolve_device(args.device)
     ref = read_json(root / reference_path(task.name), f"reference of {task.name} (dvc repro reference@{task.name})")
     variant = f"{task.name}-{args.label}" if args.label else task.name
@@ -95,6 +103,14 @@ def main() -> None:
     run_id = fingerprint(task.section("model"), task.section("diffusion"), dataclasses.asdict(cfg), expert)
     resume = root / "models" / ".resume" / f"learning-curve-{variant}-seed{args.training_seed}.pt"
     resume.parent.mkdir(parents=True, exist_ok=True)
+    files = TaskFiles(root, task.name, None, args.training_seed)
+    value_fields: dict[str, float] = {}
+    if family.uses_value_function:
+        files = curve_value(task, root, resume.with_suffix(""), bundle, traj, args.training_seed, device)
+        config = load_value(files.value)[1]["curve"]
+        value_fields = {key: config.get(name, float("nan")) for key, name in
+                        [("value_cpu_s", "train_cpu_s"), ("value_r2", "r2"), ("value_r2_t0", "r2_t0")]}  # fmt: skip
+        print(f"value function: {value_fields}", flush=True)
     ev, pl = task.evaluate, task.planner
     print(
         f"{task.name}: {cfg.steps} steps, evaluated every {args.every} on {ev.episodes} episodes from seed {ev.seed}; "
@@ -103,7 +119,8 @@ def main() -> None:
         flush=True,
     )
     last = points[-1] if points else {}
-    clock = {"train_cpu_s": last.get("train_cpu_s", 0.0), "train_s": last.get("train_s", 0.0)}
+    clock = {"train_cpu_s": last.get("train_cpu_s", value_fields.get("value_cpu_s", 0.0)),
+             "train_s": last.get("train_s", 0.0)}  # fmt: skip
     clock |= {"cpu_since": time.process_time(), "since": time.perf_counter()}
 
     def evaluate(step: int) -> None:
@@ -114,7 +131,7 @@ def main() -> None:
             planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
             result = run_episodes(
                 lambda: family.make_simulator(task),
-                family.controller(task, planner, TaskFiles(root, task.name, None, args.training_seed), device),
+                family.controller(task, planner, files, device),
                 ev.episodes,
                 ev.seed,
                 ev.batch_size,
@@ -123,7 +140,7 @@ def main() -> None:
             scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
             point = {"step": step, "score_mean": float(scores.mean()), "score_stderr": standard_error(scores),
                      **family.episode_metrics(result), "train_cpu_s": round(clock["train_cpu_s"], 1),
-                     "train_s": round(clock["train_s"], 1),
+                     "train_s": round(clock["train_s"], 1), **value_fields,
                      "eval_s": round(time.perf_counter() - start, 1)}  # fmt: skip
             points.append(point)
             with atomic_path(out) as tmp:  # a kill mid-write leaves the last whole file
@@ -134,6 +151,22 @@ def main() -> None:
     train(bundle, dataset, cfg, device, resume, run_id, progress=False, compiled=params.compile.training,
           on_checkpoint=evaluate)  # fmt: skip
     resume.unlink(missing_ok=True)
+
+
+def curve_value(
+    task: TaskParams, root: Path, folder: Path, bundle: ModelBundle, traj: Trajectories, seed: int, device: torch.device
+) -> TaskFiles:
+    """The task's files with the curve's own value function (``folder/value``, relative paths under ``root``): trained
+    as ``pretrain@<task>`` trains it unless a stopped curve already did, its CPU seconds and held-out R^2 in its
+    config under ``curve``. The global torch RNG is left as it was, so the diffusion model trains as in the stage."""
+    files = TaskFiles(root, task.name, folder.relative_to(root), seed)
+    if not files.value.exists():
+        cpu = time.process_time()
+        with torch.random.fork_rng():
+            net, fit, _ = fit_value(task, bundle, traj, seed, device, progress=False)
+        fit["train_cpu_s"] = round(time.process_time() - cpu, 1)
+        save_value(files.value, net.cpu(), {"curve": fit})
+    return files
 
 
 if __name__ == "__main__":

@@ -17,6 +17,9 @@ seeds).
     python benchmarks/recipe_study.py WORKSPACE --task maze2d-umaze --recipes benchmarks/recipes/maze2d-umaze.yaml
         [--training-seeds 0 1 2] [--every 500] [--episodes 50] [--seed 7] [--out-dir recipe-study]
 
+A value-guided task (``--task hopper-medium --recipes benchmarks/recipes/hopper-medium.yaml``) trains its value
+function in each curve, and the curve's CPU minutes include it (``value.*`` keys of ``set`` change it).
+
 WORKSPACE is a pipeline folder whose task has its dataset and reference (``dvc repro reference@<task>``).
 """
 
