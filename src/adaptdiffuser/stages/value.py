@@ -52,9 +52,10 @@ def fit_value(
 ) -> tuple[ValueNetwork, dict[str, Any], list[tuple[int, float]]]:
     """Train training seed ``seed``'s value network of ``task`` on ``traj``'s windows, noised with ``bundle``'s
     diffusion schedule and scaled by its normalizer, less the held-out episodes (``value.holdout_fraction``) on
-    which its R^2 is then measured. Returns the network, its fit (``episodes``, ``heldout_episodes``, ``r2``,
-    ``r2_t0``, ``windows``, ``parameters``) and the logged losses. Only the bundle's schedule and normalizer are
-    used, never its weights: the value of a model is that of any model of the same data and schedule."""
+    which its R^2 is then measured. Returns the network, its fit (``episodes``, ``heldout_episodes``,
+    ``training_windows``, ``parameters`` and, when episodes are held out, ``r2``, ``r2_t0``, ``windows``) and the
+    logged losses. Only the bundle's schedule and normalizer are used, never its weights: the value function does
+    not depend on the diffusion model it guides."""
     net_settings = task.settings.value_model
     settings = value_settings(task, seed)
     traj, heldout = split_heldout(traj, settings.holdout_fraction, derive_seed(settings.seed, 1))
