@@ -55,7 +55,7 @@ from adaptdiffuser.stages.pretrain import phase0_model
 from adaptdiffuser.stages.training_data import expert_training_data, pretrain_config
 from adaptdiffuser.stages.value import fit_value
 from adaptdiffuser.training import fingerprint, train
-from adaptdiffuser.value_training import load_value, save_value
+from adaptdiffuser.value_training import save_value
 
 
 def main() -> None:
@@ -107,7 +107,7 @@ def main() -> None:
     value_fields: dict[str, float] = {}
     if family.uses_value_function:
         files = curve_value(task, root, resume.with_suffix(""), bundle, traj, args.training_seed, device)
-        config = load_value(files.value)[1]["curve"]
+        config = read_json(files.value / "config.json", "curve value config")["curve"]
         value_fields = {key: config.get(name, float("nan")) for key, name in
                         [("value_cpu_s", "train_cpu_s"), ("value_r2", "r2"), ("value_r2_t0", "r2_t0")]}  # fmt: skip
         print(f"value function: {value_fields}", flush=True)
