@@ -8,7 +8,10 @@ went back, and the time (printed, never asserted). Writes every figure as JSON a
 the same ``--out``, it skips the variations already there (a stopped run goes on).
 
     python benchmarks/bench_behaviour_band.py [--tasks hopper-medium walker2d-medium halfcheetah-medium]
-        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 600000]
+        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 600000] [--algorithm ppo]
+
+``--algorithm sac`` (or ``td3``) trains the behaviour policy with that stable-baselines3 algorithm instead of PPO
+(``task.<name>.behaviour.algorithm``): D4RL's own medium policies are SAC's.
 """
 
 from __future__ import annotations
@@ -36,21 +39,27 @@ def main() -> None:
     parser.add_argument("--variations", nargs="+", default=["0:2", "0:1", "1:2"], help="seed:threads")
     parser.add_argument("--dataset-steps", type=int, default=200_000)
     parser.add_argument("--max-train-steps", type=int, default=600_000)
+    parser.add_argument("--algorithm", default="ppo", choices=["ppo", "sac", "td3"])
     parser.add_argument("--out", default="bench_behaviour_band.json")
     args = parser.parse_args()
     out = Path(args.out)
     results: list[dict] = json.loads(out.read_text()) if out.exists() else []  # a stopped run goes on from there
-    done = {(r["task"], r["seed"], r["threads"]) for r in results}
+    done = {(r["task"], r.get("algorithm", "ppo"), r["seed"], r["threads"]) for r in results}
     for task in args.tasks:
         for variation in args.variations:
             seed, threads = (int(x) for x in variation.split(":"))
-            if (task, seed, threads) in done:
+            if (task, args.algorithm, seed, threads) in done:
                 print(f"{task} seed {seed} threads {threads}: already in {out}", flush=True)
                 continue
-            settings = BehaviourSettings(seed=seed, torch_threads=threads, dataset_steps=args.dataset_steps,
-                                         max_train_steps=args.max_train_steps)  # fmt: skip
-            row: dict = {"task": task, "seed": seed, "threads": threads, "band": [settings.medium_score -
-                         settings.medium_band, settings.medium_score + settings.medium_band]}  # fmt: skip
+            settings = BehaviourSettings(
+                algorithm=args.algorithm,
+                seed=seed,
+                torch_threads=threads,
+                dataset_steps=args.dataset_steps,
+                max_train_steps=args.max_train_steps,
+            )
+            band = [settings.medium_score - settings.medium_band, settings.medium_score + settings.medium_band]
+            row: dict = {"task": task, "algorithm": args.algorithm, "seed": seed, "threads": threads, "band": band}
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 try:
