@@ -66,7 +66,7 @@ def test_repo_params_load() -> None:
     assert env.maze == "umaze" and env.layout is None and env.episode_steps is None
     assert task.settings.episode_steps == 300 and task.settings.maze_name == "umaze"
     assert params.model.dim == 16 and params.model.dim_mults == [1, 4, 8]
-    assert params.diffusion.horizon == 128 and params.pretrain.lr == pytest.approx(2e-4)
+    assert params.diffusion.horizon == 128 and params.pretrain.lr == pytest.approx(1e-3)
     assert params.planner.sampler == "ddim"
     assert (task.settings.follower.p_gain, task.settings.follower.d_gain) == (2.0, 0.5)
     assert (task.settings.evolution.cell_spread, task.settings.evolution.coin_fraction) == (0.4, 0.25)
@@ -459,9 +459,9 @@ def test_rejected_values_give_a_one_line_error_starting_with_the_key(
 @pytest.mark.parametrize(
     ("old", "new", "key"),
     [
-        ("lr: 0.0002", "lr: .nan", "pretrain.lr: must be a finite number, got nan"),
-        ("lr: 0.0002", "lr: .inf", "pretrain.lr: must be a finite number, got inf"),
-        ("lr: 0.0002", "lr: 1e999", "pretrain.lr: must be a finite number, got inf"),  # YAML 1.1: a string
+        ("lr: 0.001", "lr: .nan", "pretrain.lr: must be a finite number, got nan"),
+        ("lr: 0.001", "lr: .inf", "pretrain.lr: must be a finite number, got inf"),
+        ("lr: 0.001", "lr: 1e999", "pretrain.lr: must be a finite number, got inf"),  # YAML 1.1: a string
         ("goal_radius: 0.5", "goal_radius: .NaN", f"{T}.env.goal_radius: must be a finite number, got nan"),
         ("  seed: 0\n    gold_coin", "  seed: -1\n    gold_coin", f"{T}.collect.seed: must be >= 0, got -1"),
         ("heartbeat_s: 30", "heartbeat_s: 0", "sweep.heartbeat_s: must be > 0, got 0"),
@@ -699,9 +699,9 @@ def test_science_profile_runs_both_tasks_on_three_seeds(tmp_path: Path) -> None:
 
 def test_exponent_without_dot_is_a_number(tmp_path: Path) -> None:
     path = tmp_path / "params.yaml"
-    path.write_text((PROFILES / "quick.yaml").read_text().replace("lr: 0.0002", "lr: 2e-4"))
-    assert load_params(path).pretrain.lr == pytest.approx(2e-4)
-    path.write_text((PROFILES / "quick.yaml").read_text().replace("lr: 0.0002", "lr: fast"))
+    path.write_text((PROFILES / "quick.yaml").read_text().replace("lr: 0.001 ", "lr: 1e-3 "))
+    assert load_params(path).pretrain.lr == pytest.approx(1e-3)
+    path.write_text((PROFILES / "quick.yaml").read_text().replace("lr: 0.001 ", "lr: fast "))
     with pytest.raises(ConfigError, match="pretrain.lr"):
         load_params(path)
 
