@@ -124,7 +124,7 @@ def draw(recipes: dict[str, dict[str, Any]], out_dir: Path, seeds: list[int], ta
         ax.errorbar(minutes, score, yerr=err, marker="o", ms=3, capsize=2, label=name)
     ax.set_xlabel("training CPU minutes (all threads)")
     ax.set_ylabel("normalized score (validation episodes)")
-    ax.set_title(f"{task}: phase-0 score against training CPU time, mean +- s.e. over seeds {seeds}")
+    ax.set_title(f"{task}: phase-0 score against training CPU time\n(mean +- s.e. over training seeds {seeds})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     path = out_dir / "recipes.png"
