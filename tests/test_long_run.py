@@ -38,7 +38,8 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     pid = int((folder / "long_run.pid").read_text())
     deadline = time.monotonic() + 600
     resume = folder / "models" / ".resume"
-    while not (resume.is_dir() and any(resume.iterdir())):  # pretraining wrote a resume state: kill the run there
+    # kill the run once pretraining has written a whole resume state (not only its hidden temporary file)
+    while not (resume.is_dir() and any(not state.name.startswith(".") for state in resume.iterdir())):
         assert time.monotonic() < deadline, (folder / "long_run.log").read_text()
         time.sleep(0.2)
     os.killpg(pid, signal.SIGKILL)
