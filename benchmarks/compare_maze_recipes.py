@@ -1,4 +1,4 @@
-"""Compare the Maze2D evolution recipes (``task.<name>.evolution.recipe``: ``plans`` vs ``rollouts``) from the same
+"""Compare the Maze2D evolution recipes (``evolution.generate.recipe``: ``plans`` vs ``rollouts``) from the same
 phase-0 model with the same seeds, in one command; prints a table (never asserts).
 
 For each recipe, phases 1..K run as the pipeline runs them (generate, discriminate, select, fine-tune on expert
@@ -89,9 +89,9 @@ def load_raw(args: argparse.Namespace) -> dict[str, Any]:
 
 def recipe_params(raw: dict[str, Any], task: str, recipe: str, args: argparse.Namespace) -> Params:
     """Params with ``recipe`` for ``task`` (and the command line's generation and evaluation sizes)."""
-    raw = set_dotted(raw, f"task.{task}.evolution.recipe", recipe)
+    raw = set_dotted(raw, "evolution.generate.recipe", recipe)
     if args.replan_every is not None:
-        raw = set_dotted(raw, f"task.{task}.evolution.replan_every", args.replan_every)
+        raw = set_dotted(raw, "evolution.generate.replan_every", args.replan_every)
     if args.tasks is not None:
         raw = set_dotted(raw, "evolution.generate.tasks", args.tasks)
     if args.episodes is not None:

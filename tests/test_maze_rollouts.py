@@ -1,4 +1,4 @@
-"""The author's Maze2D recipe (``task.<name>.evolution.recipe: rollouts``): closed-loop rollouts that replan and end at
+"""The author's Maze2D recipe (``evolution.generate.recipe: rollouts``): closed-loop rollouts that replan and end at
 the goal, judged by the paper's rule on their real length, padded by staying at the goal; and evaluation with
 replanning. Real simulator, tiny settings."""
 
@@ -13,7 +13,14 @@ import yaml
 from conftest import maze_sim
 
 from adaptdiffuser.checkpoint import make_bundle
-from adaptdiffuser.config import ConfigError, DiscriminateParams, Params, apply_profile, params_from_dict
+from adaptdiffuser.config import (
+    ConfigError,
+    DiscriminateParams,
+    GenerateParams,
+    Params,
+    apply_profile,
+    params_from_dict,
+)
 from adaptdiffuser.contract import TaskFiles, TrackedTrajectory
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.windows import WindowDataset
@@ -66,12 +73,12 @@ class StraightLinePlanner:
         return objective
 
 
-def rollout_params(tmp_path: Path, episode_steps: int = 80, **evolution: object) -> Params:
+def rollout_params(tmp_path: Path, episode_steps: int = 80, **generate: object) -> Params:
     """The smoke profile with the rollouts recipe for U-Maze and short episodes."""
     raw = yaml.safe_load(apply_profile("smoke", PROFILES, tmp_path / "params.yaml").read_text())
     entry = raw["task"][TASK]
     entry["env"] = {**entry.get("env", {}), "episode_steps": episode_steps}
-    entry["evolution"] = {"recipe": "rollouts", "replan_every": 8, **evolution}
+    raw["evolution"]["generate"] |= {"recipe": "rollouts", "replan_every": 8, **generate}
     return params_from_dict(raw)
 
 
@@ -166,7 +173,7 @@ def test_judge_rollouts_prefers_the_rollout_that_arrives_sooner(tmp_path: Path) 
         start_cells=np.zeros((0, 2)),
         goal_cells=np.zeros((0, 2)),
     )
-    generated = task_trajectories([near, far, stuck], tasks, np.arange(3), TASK, {})
+    generated = task_trajectories([near, far, stuck], tasks, np.arange(3), TASK, {"recipe": "rollouts"})
     for cfg, kept in ((DiscriminateParams(rule="top_k", top_k=1), [0]), (DiscriminateParams(rule="top_k"), [0, 1])):
         judgement = family.discriminate(task, generated, cfg, 1, TaskFiles(tmp_path, TASK), progress=False)
         assert judgement.kept.tolist() == kept
@@ -266,24 +273,28 @@ def test_rollouts_are_reproducible_and_do_not_depend_on_the_batch_size() -> None
 
 
 def test_recipe_settings_are_checked_with_one_line_naming_the_key(tmp_path: Path) -> None:
-    assert Params().resolve(TASK).settings.evolution.recipe == "plans"  # the default: today's recipe
+    assert GenerateParams().recipe == "plans"  # the default: today's recipe
     with pytest.raises(
-        ConfigError, match=r"^task\.maze2d-umaze\.evolution\.recipe: must be one of 'plans', 'rollouts'"
+        ConfigError, match=r"^phases\.phase1\.generate\.recipe: 'rollout' is not a recipe of the maze2d family"
     ):
         rollout_params(tmp_path, recipe="rollout")
-    with pytest.raises(ConfigError, match=r"^task\.maze2d-umaze\.evolution\.replan_every: 40 exceeds diffusion"):
+    with pytest.raises(ConfigError, match=r"^phases\.phase1\.generate\.replan_every: 40 exceeds diffusion"):
         rollout_params(tmp_path, replan_every=40)
-    with pytest.raises(ConfigError, match=r"^task\.maze2d-umaze\.evolution\.unknown: unknown key"):
-        rollout_params(tmp_path, unknown=1)
     raw = yaml.safe_load((tmp_path / "params.yaml").read_text())
-    raw["task"][TASK]["evolution"] = {"recipe": "rollouts"}
+    raw["task"][TASK]["evolution"] = {"recipe": "rollouts"}  # no longer a key of the task's entry
+    with pytest.raises(ConfigError, match=r"^task\.maze2d-umaze\.evolution\.recipe: unknown key"):
+        params_from_dict(raw)
+    raw["task"][TASK]["evolution"] = {}
+    raw["evolution"]["generate"]["recipe"] = "rollouts"
     raw["evolution"]["discriminate"]["tracking"] = False
     with pytest.raises(ConfigError, match=r"^phases\.phase1\.discriminate\.tracking: .*rollouts"):
         params_from_dict(raw)
-    task = rollout_params(tmp_path, replan_every=0).resolve(TASK)
-    assert task.settings.evolution.replan_every == 0  # plan once per rollout
-    rule = get_family("maze2d").selection_rule(task, DiscriminateParams(rule="paper"))
+    params = rollout_params(tmp_path, replan_every=0)
+    assert params.phase(1).generate.replan_every == 0  # plan once per rollout
+    task = params.resolve(TASK)
+    rule = get_family("maze2d").selection_rule(task, DiscriminateParams(rule="paper"), "rollouts")
     assert rule == RolloutRule(PAPER_MAZE_RULES["umaze"], 80, rank_by_episode_return=False)
+    assert get_family("maze2d").selection_rule(task, DiscriminateParams(rule="paper")) is PAPER_MAZE_RULES["umaze"]
 
 
 # -- the plans recipe's optional stay at the goal ----------------------------------------------------------------

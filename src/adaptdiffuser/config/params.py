@@ -206,6 +206,12 @@ def check_cross_fields(p: Params) -> None:
                     f"phases.{phase.name}.generate.sampler_steps: must be in 1..diffusion.n_steps={n_steps} of "
                     f"{p.evolve}, got {phase.generate.sampler_steps}"
                 )
+            recipes = evolution_recipes(p.evolved)
+            if phase.generate.recipe not in recipes:
+                raise ConfigError(
+                    f"phases.{phase.name}.generate.recipe: {phase.generate.recipe!r} is not a recipe of the "
+                    f"{p.evolved.family} family ({p.evolve}); choose one of {list(recipes)}"
+                )
     check_data_sources(p)
 
 
@@ -268,6 +274,12 @@ def check_task_lists(p: Params) -> None:
 def task_stages(task: TaskParams) -> tuple[str, ...]:
     """The optional stages a task's family has (``evolve``), declared by its task model."""
     return tuple(getattr(task.settings, "OPTIONAL_STAGES", ()))
+
+
+def evolution_recipes(task: TaskParams) -> tuple[str, ...]:
+    """The ways a task's family makes an evolution phase's data (``evolution.generate.recipe``), declared by its
+    task model (``EVOLUTION_RECIPES``); every family has ``plans``."""
+    return tuple(getattr(task.settings, "EVOLUTION_RECIPES", ("plans",)))
 
 
 def unseen_task_of(task: TaskParams) -> str | None:

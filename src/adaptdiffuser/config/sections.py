@@ -104,6 +104,11 @@ class GenerateParams:
     seed: Seed = 100
     sampler: Sampler = "ddim"
     sampler_steps: PositiveInt = 16  # and <= diffusion.n_steps (checked on Params)
+    #: how a phase makes its data: ``plans`` (the model's plans, executed by the discriminator) or another recipe
+    #: of the evolved task's family (its ``EVOLUTION_RECIPES``; Maze2D: ``rollouts``). Here, not in the task's
+    #: entry, so that changing it reruns the phases only, never phase 0 or the controls.
+    recipe: Str = "plans"
+    replan_every: NonNegativeInt = 32  # recipes that run the planner closed loop: replan every this many steps
 
 
 @dataclass(frozen=True, config=SECTION)

@@ -2,7 +2,7 @@
 a gold coin; the discriminator follows each plan with the evaluation's PD follower and keeps plans by the paper's
 reward/length rule (or a generic one), and coin plans when the coin was picked before the goal.
 
-``task.<name>.evolution.recipe`` chooses how: ``plans`` (one open-loop plan of the horizon per task, tracked by the
+``evolution.generate.recipe`` chooses how: ``plans`` (one open-loop plan of the horizon per task, tracked by the
 discriminator) or ``rollouts`` (closed-loop rollouts that replan and end at the goal, see :mod:`.rollouts`, judged
 as executed with their real length).
 """
@@ -51,9 +51,10 @@ def generate_navigation_data(
     progress: bool,
 ) -> tuple[Trajectories, dict[str, float]]:
     """One plan per random task, taken at its word (planned states, actions and reward), with the task columns; or,
-    with ``evolution.recipe: rollouts``, one closed-loop rollout per task (:func:`generate_rollout_data`)."""
+    with ``cfg.recipe: rollouts``, one closed-loop rollout per task (:func:`generate_rollout_data`)."""
     tasks = generation_tasks(env, task.settings.evolution, cfg.tasks, seed)
-    if task.settings.evolution.recipe == "rollouts":
+    generator = {**generator, "recipe": cfg.recipe}  # how the discriminator reads them
+    if cfg.recipe == "rollouts":
         return generate_rollout_data(env, task, planner, tasks, cfg, alpha, seed, generator, progress)
     plans = generate_plans(planner, tasks, cfg.batch_size, seed, alpha=alpha, progress=progress)
     act_dim = planner.act_dim
@@ -69,6 +70,11 @@ def generate_navigation_data(
         "planned_return_mean": float(np.mean([t.total_reward for t in planned])),
     }
     return traj, stats
+
+
+def generated_recipe(generated: Trajectories) -> str:
+    """The recipe (``evolution.generate.recipe``) that made a phase's generated data, from its metadata."""
+    return str(generated.metadata.get("generator", {}).get("recipe", "plans"))
 
 
 def generation_tasks(env: Maze2D, settings: EvolutionSettings, n: int, seed: int) -> NavigationTasks:
@@ -93,7 +99,7 @@ def generate_rollout_data(
     progress: bool,
 ) -> tuple[Trajectories, dict[str, float]]:
     """One closed-loop rollout per task in fresh simulators like ``env`` (replanning every
-    ``evolution.replan_every`` steps, ending at the goal or after the episode length): the executed states, actions
+    ``cfg.replan_every`` steps, ending at the goal or after the episode length): the executed states, actions
     and rewards, unpadded, with the task columns and each step's tracking error (column ``tracking_error``)."""
     from adaptdiffuser.family_registry import get_family
 
@@ -103,7 +109,7 @@ def generate_rollout_data(
         planner,
         tasks,
         seed,
-        task.settings.evolution.replan_every,
+        cfg.replan_every,
         env.episode_steps,
         cfg.batch_size,
         alpha=alpha,
@@ -131,7 +137,7 @@ def judge_navigation_data(
     """Track every plan from its first state with the plan follower; select navigation plans by ``rule`` and coin
     plans that pick their coin and then reach the goal. Rollouts are judged as executed
     (:func:`judge_rollouts`)."""
-    if task.settings.evolution.recipe == "rollouts":
+    if generated_recipe(generated) == "rollouts":
         return judge_rollouts(env, task, generated, cfg, rule)
     states, actions, tasks = split_task_trajectories(generated)
     return discriminate(
@@ -211,10 +217,10 @@ def selected_navigation_data(
     and stay there for the rest of the horizon."""
     _, _, tasks = split_task_trajectories(generated)
     kept = [judgement.trajectories[i] for i in judgement.kept]
-    evolution, h = task.settings.evolution, task.diffusion.horizon
-    if evolution.recipe == "rollouts":
+    h = task.diffusion.horizon
+    if generated_recipe(generated) == "rollouts":
         kept = [settle_at_goal(t, len(t.observations) - 1, len(t.observations) + h - 1) for t in kept]
-    elif evolution.stay_at_goal:
+    elif task.settings.evolution.stay_at_goal:
         coins = tasks.coins[judgement.kept] if tasks.coins is not None else [None] * len(kept)
         radius = task.settings.gold_coin.radius
         kept = [stay_after_arrival(t, c, radius) for t, c in zip(kept, coins, strict=True)]

@@ -110,22 +110,23 @@ class Maze2DFamily(Family):
         """100 x the share of cases that pick the coin and reach the goal."""
         return 100.0 * float(metrics["both_rate"])
 
-    def selection_rule(self, task: TaskParams, cfg: DiscriminateParams) -> SelectionRule:
+    def selection_rule(self, task: TaskParams, cfg: DiscriminateParams, recipe: str = "plans") -> SelectionRule:
         """The discriminator's rule for the navigation tasks of ``task``'s evolution: under ``rule: paper`` the
-        appendix's thresholds for its maze, else the generic rule ``cfg.rule`` names; for the ``rollouts`` recipe
-        that rule among the rollouts that reach their goal, on their real length (``RolloutRule``)."""
+        appendix's thresholds for its maze, else the generic rule ``cfg.rule`` names; for data made by the
+        ``rollouts`` recipe that rule among the rollouts that reach their goal, on their real length
+        (``RolloutRule``)."""
         from adaptdiffuser.evolution.discriminator import generic_selection_rule
         from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, RolloutRule
 
         paper = cfg.rule == "paper"
         rule = PAPER_MAZE_RULES[task.settings.env.maze] if paper else generic_selection_rule(cfg)
-        if task.settings.evolution.recipe == "rollouts":
+        if recipe == "rollouts":
             return RolloutRule(rule, task.settings.episode_steps, rank_by_episode_return=not paper)
         return rule
 
     def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
-        """Plans (or, with ``evolution.recipe: rollouts``, closed-loop rollouts) for random (start, goal) cells,
-        ``evolution.coin_fraction`` of them guided toward a coin (``alpha``)."""
+        """Plans (or, with ``evolution.generate.recipe: rollouts``, closed-loop rollouts) for random (start, goal)
+        cells, ``evolution.coin_fraction`` of them guided toward a coin (``alpha``)."""
         from adaptdiffuser.families.maze2d.evolution import generate_navigation_data
 
         env = self.make_simulator(task)
@@ -134,10 +135,11 @@ class Maze2DFamily(Family):
     def discriminate(self, task, generated, cfg, phase, files, progress):
         """Follow every plan with the PD follower (rollouts were executed already); the paper's rule (or a generic
         one) on real reward and length."""
-        from adaptdiffuser.families.maze2d.evolution import judge_navigation_data
+        from adaptdiffuser.families.maze2d.evolution import generated_recipe, judge_navigation_data
 
         env = self.make_simulator(task)
-        return judge_navigation_data(env, task, generated, cfg, self.selection_rule(task, cfg), progress)
+        rule = self.selection_rule(task, cfg, generated_recipe(generated))
+        return judge_navigation_data(env, task, generated, cfg, rule, progress)
 
     def selected_data(self, task, generated, judgement, generator):
         from adaptdiffuser.families.maze2d.evolution import selected_navigation_data

@@ -20,7 +20,6 @@ from adaptdiffuser.config.fields import (
     PositiveInt,
     Seed,
     Str,
-    one_of,
 )
 from adaptdiffuser.config.sections import SECTION
 from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, parse_layout
@@ -30,7 +29,7 @@ if TYPE_CHECKING:
     from adaptdiffuser.config.tasks import TaskParams
 
 PAPER_RULE_MAZES = ("umaze", "medium", "large")
-#: how an evolution phase makes its synthetic data (see :class:`EvolutionSettings`)
+#: how an evolution phase makes its synthetic data (``evolution.generate.recipe``; see :class:`EvolutionSettings`)
 RECIPES = ("plans", "rollouts")
 CUSTOM_EPISODE_STEPS = 300  # what the simulator uses for a custom layout when env.episode_steps is null
 
@@ -85,20 +84,19 @@ class GoldCoinParams:
 
 @dataclass(frozen=True, config=SECTION)
 class EvolutionSettings:
-    """How a Maze2D task's evolution phases make synthetic data (``task.<name>.evolution``).
+    """The random tasks of a Maze2D task's evolution phases (``task.<name>.evolution``).
 
-    ``recipe: plans`` (the default): one open-loop plan of the model's horizon per random (start, goal) task, tracked
-    by the plan follower in the discriminator, the paper's rule applied with L = the horizon. ``recipe: rollouts``
-    (the author's recipe, official AdaptDiffuser repository, issue 7): closed-loop rollouts in the simulator that
-    replan every ``replan_every`` steps (0: plan once) and end when the goal is reached or after the maze's episode
-    length; the discriminator keeps those that reach the goal by the rule with L = the steps taken to reach it, and
-    the kept rollouts are padded by staying at the goal for a horizon, so the model learns plans that reach it and
-    stay. ``stay_at_goal`` does the same for the ``plans`` recipe's kept trajectories: cut where they first reach
-    the goal and fill the rest of the horizon by staying there (off by default: the plans recipe as it always was).
+    The phase's recipe is generic (``evolution.generate.recipe``). ``plans`` (the default): one open-loop plan of
+    the model's horizon per random (start, goal) task, tracked by the plan follower in the discriminator, the paper's
+    rule applied with L = the horizon. ``rollouts`` (the author's recipe, official AdaptDiffuser repository, issue
+    7): closed-loop rollouts in the simulator that replan every ``evolution.generate.replan_every`` steps (0: plan
+    once) and end when the goal is reached or after the maze's episode length; the discriminator keeps those that
+    reach the goal by the rule with L = the steps taken to reach it, and the kept rollouts are padded by staying at
+    the goal for a horizon, so the model learns plans that reach it and stay. ``stay_at_goal`` does the same for
+    the ``plans`` recipe's kept trajectories: cut where they first reach the goal and fill the rest of the horizon
+    by staying there (off by default: the plans recipe as it always was).
     """
 
-    recipe: Annotated[Str, one_of(*RECIPES)] = "plans"
-    replan_every: NonNegativeInt = 32
     stay_at_goal: Bool = False
     #: a task's start: its cell centre + U(-cell_spread, cell_spread)
     cell_spread: Annotated[Float, HALF_CELL] = 0.4
@@ -121,6 +119,8 @@ class Maze2DTaskParams:
     gold-coin evaluation."""
 
     OPTIONAL_STAGES: ClassVar[tuple[str, ...]] = ("evolve",)
+    #: how its evolution phases may make their data (``evolution.generate.recipe``)
+    EVOLUTION_RECIPES: ClassVar[tuple[str, ...]] = RECIPES
     #: the family's unseen task: its evaluate-unseen stages run, its settings are the section of this name
     UNSEEN_TASK: ClassVar[str] = "gold_coin"
 
@@ -184,24 +184,24 @@ class Maze2DTaskParams:
                     f"phases.{phase.name}.discriminate.rule: the rule 'paper' has thresholds for umaze, medium and "
                     f"large only ({task.name} is not one); set evolution.discriminate.rule to quantile or top_k"
                 )
-        if self.evolution.recipe == "rollouts":
-            self._check_rollouts(task, params)
-
-    def _check_rollouts(self, task: TaskParams, params: Params) -> None:
-        where = f"task.{task.name}.evolution"
-        h = task.diffusion.horizon
-        if self.evolution.replan_every > h:
-            raise ConfigError(
-                f"{where}.replan_every: {self.evolution.replan_every} exceeds diffusion.horizon={h} (a plan's "
-                f"length); use 1..{h}, or 0 to plan once per rollout"
-            )
         for phase in params.phases:
-            if not phase.discriminate.tracking:
-                raise ConfigError(
-                    f"phases.{phase.name}.discriminate.tracking: {where}.recipe is rollouts, which are executed "
-                    "in the simulator as they are made; tracking must be true (the no-simulator ablation needs "
-                    "recipe: plans)"
-                )
+            if phase.generate.recipe == "rollouts":
+                self._check_rollouts(task, phase)
+
+    @staticmethod
+    def _check_rollouts(task: TaskParams, phase: Any) -> None:
+        where = f"phases.{phase.name}"
+        h = task.diffusion.horizon
+        if phase.generate.replan_every > h:
+            raise ConfigError(
+                f"{where}.generate.replan_every: {phase.generate.replan_every} exceeds diffusion.horizon={h} of "
+                f"{task.name} (a plan's length); use 1..{h}, or 0 to plan once per rollout"
+            )
+        if not phase.discriminate.tracking:
+            raise ConfigError(
+                f"{where}.discriminate.tracking: {where}.generate.recipe is rollouts, which are executed in the "
+                "simulator as they are made; tracking must be true (the no-simulator ablation needs recipe: plans)"
+            )
 
 
 TASK_PARAMS = Maze2DTaskParams
