@@ -2,10 +2,12 @@
 # Long runs (the science profiles: hours to days on 2 CPU cores) in their own clone pinned to a commit, so that work
 # on this repository cannot make them stale; the same one command continues a run after any interruption.
 #
-#   bash scripts/long_run.sh start FOLDER [--profile NAME] [--commit REV] [--from REPO] [--venv VENV] [--foreground]
+#   bash scripts/long_run.sh start FOLDER [--profile NAME] [--script FILE] [--commit REV] [--from REPO] [--venv VENV]
+#                                         [--foreground]
 #       clone REPO (default: this repository) at REV (default: its HEAD) into FOLDER, install it there (or use VENV's
 #       packages with FOLDER/src first on PYTHONPATH), switch to profile NAME (default: the commit's params.yaml)
-#       and start `dvc repro` in the background (log: FOLDER/long_run.log)
+#       and start `dvc repro` in the background (log: FOLDER/long_run.log), or FILE, a bash script of the clone that
+#       runs `dvc repro` itself and reruns cleanly (scripts/science_maze.sh: both Maze2D recipes)
 #   bash scripts/long_run.sh resume FOLDER [--foreground]
 #       continue where it stopped: DVC skips the stages that finished, training resumes from its last checkpoint
 #       (models/.resume/), the other stages rerun from their start (minutes at most)
@@ -14,17 +16,18 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,13p' "$0" >&2; exit 2; }
+usage() { sed -n '4,16p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
 action=$1
 folder=$(realpath -m "$2")
 shift 2
-profile="" commit="HEAD" source="$here" venv="" foreground=0
+profile="" script="" commit="HEAD" source="$here" venv="" foreground=0
 while [ $# -gt 0 ]; do
   case $1 in
     --profile) profile=$2; shift 2 ;;
+    --script) script=$2; shift 2 ;;
     --commit) commit=$2; shift 2 ;;
     --from) source=$2; shift 2 ;;
     --venv) venv=$(realpath "$2"); shift 2 ;;
@@ -56,12 +59,14 @@ launch() {
   if pid=$(running_pid); then die "$folder is already running (pid $pid)"; fi
   environment
   cd "$folder"
-  echo "== $(date -u +%FT%TZ) dvc repro at $(git rev-parse --short HEAD)" >> long_run.log
+  local run=(dvc repro)
+  if [ -n "${LONG_RUN_SCRIPT:-}" ]; then run=(bash "$LONG_RUN_SCRIPT"); fi
+  echo "== $(date -u +%FT%TZ) ${run[*]} at $(git rev-parse --short HEAD)" >> long_run.log
   if [ "$foreground" = 1 ]; then
     echo $$ > long_run.pid
-    dvc repro >> long_run.log 2>&1 || die "dvc repro failed: see $folder/long_run.log"
+    "${run[@]}" >> long_run.log 2>&1 || die "${run[*]} failed: see $folder/long_run.log"
   else
-    setsid nohup dvc repro >> long_run.log 2>&1 < /dev/null &
+    setsid nohup "${run[@]}" >> long_run.log 2>&1 < /dev/null &
     echo $! > long_run.pid
     echo "running in the background (pid $!): bash scripts/long_run.sh status $folder"
   fi
@@ -74,7 +79,9 @@ case $action in
     git clone -q "$source" "$folder"
     git -C "$folder" checkout -q "$rev"
     printf 'long_run.log\nlong_run.pid\n.long_run.env\n' >> "$folder/.git/info/exclude"
-    printf 'LONG_RUN_VENV=%q\nLONG_RUN_PROFILE=%q\n' "$venv" "${profile:-params.yaml of the commit}" > "$folder/.long_run.env"
+    [ -z "$script" ] || [ -f "$folder/$script" ] || die "no script $script in the clone at $rev"
+    printf 'LONG_RUN_VENV=%q\nLONG_RUN_PROFILE=%q\nLONG_RUN_SCRIPT=%q\n' "$venv" "${profile:-params.yaml of the commit}" \
+      "$script" > "$folder/.long_run.env"
     if [ -z "$venv" ]; then (cd "$folder" && bash scripts/setup.sh); fi
     if [ -n "$profile" ]; then (environment && cd "$folder" && adaptdiffuser profile "$profile"); fi
     echo "pinned $folder at $rev"
@@ -90,6 +97,7 @@ case $action in
     cd "$folder"
     echo "commit: $(git log -1 --format='%h %s' | cut -c1-100)"
     echo "profile: $LONG_RUN_PROFILE"
+    echo "runs: ${LONG_RUN_SCRIPT:-dvc repro}"
     total=$(dvc stage list --name-only | wc -l)
     if pid=$(running_pid); then
       # DVC holds the repository's lock while it runs: the stages it started, from its log

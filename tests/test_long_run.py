@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -58,3 +60,40 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     assert "0 left" in status and "resume state:" not in status
     assert run_tool(["git", "rev-parse", "HEAD"], folder).strip() == head
     assert (folder / f"metrics/tasks/{MAZE}/phase0-unseen.json").exists()
+
+
+def _maze_phases_only(path: Path) -> None:
+    """The smoke profile's first evolution phase on the maze task alone (with its control)."""
+    raw = yaml.safe_load(path.read_text())
+    raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=MAZE, phases={"phase1": {"previous": 0}})
+    raw["evolution"]["generate"] |= {"replan_every": 8}
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+
+
+@pytest.mark.e2e
+def test_science_maze_runs_both_recipes_on_one_phase0_and_one_set_of_controls(tmp_path: Path) -> None:
+    project = make_smoke_project(tmp_path, run_tool, edit=_maze_phases_only)
+    (project / "scripts").mkdir()
+    shutil.copy2(REPO / "scripts" / "science_maze.sh", project / "scripts")
+    log = run_tool(["bash", "scripts/science_maze.sh"], project)
+
+    plans, rollouts = log.split("evolution.generate.recipe=rollouts", 1)
+    for stage in ("collect", "pretrain", "evaluate-phase0"):
+        assert f"Running stage '{stage}@{MAZE}'" in plans and f"Stage '{stage}@{MAZE}' didn't change" in rollouts
+    # phase 1's control is trained once (phase k's starts from phase k-1's model: that recipe's own)
+    assert "Running stage 'control@phase1'" in plans and "Running stage 'control@phase1'" not in rollouts
+    for stage in ("generate@phase1", "discriminate@phase1", "finetune@phase1"):
+        assert f"Running stage '{stage}'" in plans and f"Running stage '{stage}'" in rollouts
+
+    science = project / "metrics" / "science"
+    first = json.loads((science / f"{MAZE}.json").read_text())[MAZE]
+    second = json.loads((science / f"{MAZE}-rollouts.json").read_text())[MAZE]
+    assert first["phase_0"] == second["phase_0"]  # one phase 0 and one control, scored on the same episodes
+    assert first["phase_1"]["control"]["score_mean"] == second["phase_1"]["control"]["score_mean"]
+    assert yaml.safe_load((project / "params.yaml").read_text())["evolution"]["generate"]["recipe"] == "plans"
+    # run again (as after a stop): no training reruns (DVC's run cache restores the models of each recipe), the
+    # uncached evaluations that rerun give the same summaries
+    again = run_tool(["bash", "scripts/science_maze.sh"], project)
+    assert not any(f"Running stage '{stage}@" in again for stage in ("collect", "pretrain", "finetune", "control"))
+    assert json.loads((science / f"{MAZE}.json").read_text())[MAZE] == first
+    assert json.loads((science / f"{MAZE}-rollouts.json").read_text())[MAZE] == second

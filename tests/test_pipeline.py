@@ -283,7 +283,7 @@ def test_second_repro_does_nothing_and_params_rerun_only_dependents(smoke_repo: 
         # a generation default reruns generation in every phase; collect, reference and pretrain stay cached
         ran = dry_run_with(lambda p: p["evolution"]["generate"].update(batch_size=4))  # smoke: 8
         assert ran == {"generate@phase1", "generate@phase2"}
-        # so does the recipe (Maze2D's rollouts): phase 0 and the controls stay cached, so recipes share them
+        # so does the recipe (Maze2D's rollouts): phase 0 and phase 1's control stay cached, so recipes share them
         ran = dry_run_with(lambda p: p["evolution"]["generate"].update(recipe="rollouts", replan_every=8))
         assert ran == {"generate@phase1", "generate@phase2"}
     finally:

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Both Maze2D evolution recipes on the profile in params.yaml (science-medium, science-large, or any profile that
+# evolves a Maze2D task), one after the other in this folder: `plans`, then the author's `rollouts`. The recipe is
+# a generic key (evolution.generate.recipe), so the second pass reruns the phases only: phase 0 and phase 1's
+# equal-compute control are the first pass's (phase k's control starts from phase k-1: that recipe's). Each pass's
+# summary goes to metrics/science/<task>.json (plans) and metrics/science/<task>-rollouts.json; params.yaml is left
+# as the profile wrote it. Rerunning the script after any stop continues where it stopped: DVC skips or restores
+# (run cache) the trained models of both recipes, training resumes from its checkpoint, and the uncached stages
+# (discrimination, evaluations: minutes) rerun. Long: run it in a pinned clone,
+#   bash scripts/long_run.sh start ../runs/science-medium --profile science-medium --script scripts/science_maze.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+task=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve"])')
+mkdir -p metrics/science
+for recipe in plans rollouts; do
+  echo "== $(date -u +%FT%TZ) $task: evolution.generate.recipe=$recipe"
+  adaptdiffuser set "evolution.generate.recipe=$recipe"
+  dvc repro
+  out="metrics/science/$task.json"
+  [ "$recipe" = plans ] || out="metrics/science/$task-$recipe.json"
+  cp metrics/summary.json "$out.tmp" && mv "$out.tmp" "$out"   # whole or absent
+done
+adaptdiffuser set evolution.generate.recipe=plans
+adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"
