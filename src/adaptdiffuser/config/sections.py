@@ -106,7 +106,7 @@ class GenerateParams:
     sampler_steps: PositiveInt = 16  # and <= diffusion.n_steps (checked on Params)
     #: how a phase makes its data: ``plans`` (the model's plans, executed by the discriminator) or another recipe
     #: of the evolved task's family (its ``EVOLUTION_RECIPES``; Maze2D: ``rollouts``). Here, not in the task's
-    #: entry, so that changing it reruns the phases only, never phase 0 or the controls.
+    #: entry, so that changing it reruns the phases only, never phase 0 or phase 1's control.
     recipe: Str = "plans"
     replan_every: NonNegativeInt = 32  # recipes that run the planner closed loop: replan every this many steps
 

@@ -26,6 +26,7 @@ from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, parse_la
 
 if TYPE_CHECKING:
     from adaptdiffuser.config.params import Params
+    from adaptdiffuser.config.phases import PhaseParams
     from adaptdiffuser.config.tasks import TaskParams
 
 PAPER_RULE_MAZES = ("umaze", "medium", "large")
@@ -189,7 +190,7 @@ class Maze2DTaskParams:
                 self._check_rollouts(task, phase)
 
     @staticmethod
-    def _check_rollouts(task: TaskParams, phase: Any) -> None:
+    def _check_rollouts(task: TaskParams, phase: PhaseParams) -> None:
         where = f"phases.{phase.name}"
         h = task.diffusion.horizon
         if phase.generate.replan_every > h:
