@@ -295,6 +295,13 @@ def test_recipe_settings_are_checked_with_one_line_naming_the_key(tmp_path: Path
     rule = get_family("maze2d").selection_rule(task, DiscriminateParams(rule="paper"), "rollouts")
     assert rule == RolloutRule(PAPER_MAZE_RULES["umaze"], 80, rank_by_episode_return=False)
     assert get_family("maze2d").selection_rule(task, DiscriminateParams(rule="paper")) is PAPER_MAZE_RULES["umaze"]
+    # a family without the recipe refuses it by name
+    raw = yaml.safe_load(apply_profile("quick-locomotion", PROFILES, tmp_path / "locomotion.yaml").read_text())
+    raw["evolution"]["generate"]["recipe"] = "rollouts"
+    with pytest.raises(
+        ConfigError, match=r"^phases\.phase1\.generate\.recipe: 'rollouts' is not a recipe of the locomotion"
+    ):
+        params_from_dict(raw)
 
 
 # -- the plans recipe's optional stay at the goal ----------------------------------------------------------------
