@@ -16,7 +16,7 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,16p' "$0" >&2; exit 2; }
+usage() { sed -n '4,15p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
@@ -76,10 +76,10 @@ case $action in
   start)
     [ ! -e "$folder" ] || die "$folder exists: continue it with 'bash scripts/long_run.sh resume $folder'"
     rev=$(git -C "$source" rev-parse --verify "$commit^{commit}") || die "no commit $commit in $source"
+    [ -z "$script" ] || git -C "$source" cat-file -e "$rev:$script" 2>/dev/null || die "no script $script at $rev"
     git clone -q "$source" "$folder"
     git -C "$folder" checkout -q "$rev"
     printf 'long_run.log\nlong_run.pid\n.long_run.env\n' >> "$folder/.git/info/exclude"
-    [ -z "$script" ] || [ -f "$folder/$script" ] || die "no script $script in the clone at $rev"
     printf 'LONG_RUN_VENV=%q\nLONG_RUN_PROFILE=%q\nLONG_RUN_SCRIPT=%q\n' "$venv" "${profile:-params.yaml of the commit}" \
       "$script" > "$folder/.long_run.env"
     if [ -z "$venv" ]; then (cd "$folder" && bash scripts/setup.sh); fi

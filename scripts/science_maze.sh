@@ -11,6 +11,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 task=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve"])')
+trap 'adaptdiffuser set evolution.generate.recipe=plans > /dev/null' EXIT   # params.yaml as the profile wrote it
 mkdir -p metrics/science
 for recipe in plans rollouts; do
   echo "== $(date -u +%FT%TZ) $task: evolution.generate.recipe=$recipe"
@@ -18,7 +19,7 @@ for recipe in plans rollouts; do
   dvc repro
   out="metrics/science/$task.json"
   [ "$recipe" = plans ] || out="metrics/science/$task-$recipe.json"
-  cp metrics/summary.json "$out.tmp" && mv "$out.tmp" "$out"   # whole or absent
+  cp metrics/summary.json "$out.tmp"
+  mv "$out.tmp" "$out"   # whole or absent
 done
-adaptdiffuser set evolution.generate.recipe=plans
 adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"

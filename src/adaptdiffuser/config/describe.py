@@ -64,8 +64,9 @@ def describe(params: Params) -> list[str]:
             rule = {"paper": "paper thresholds", "quantile": f"quantile {d.quantile:g}", "top_k": f"top {d.top_k}"}
             k = phase.name
             lines += [
-                f"  generate@{k}: {g.tasks} plans from {t.name} phase{phase.previous}, "
-                f"{_sampler(g.sampler, g.sampler_steps)}",
+                f"  generate@{k}: {g.tasks} {'plans' if g.recipe == 'plans' else g.recipe} from {t.name} "
+                f"phase{phase.previous}, {_sampler(g.sampler, g.sampler_steps)}"
+                + (f", replanning every {g.replan_every} steps" if g.recipe != "plans" else ""),
                 f"  discriminate@{k}: {rule[d.rule]}"
                 + (f", tracking error <= {d.max_error:g}" if d.tracking else ", no tracking (planned reward)"),
                 f"  finetune@{k}: {max(1, round(f.steps_fraction * t.pretrain.steps))} steps on phases "

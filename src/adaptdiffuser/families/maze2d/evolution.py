@@ -73,8 +73,10 @@ def generate_navigation_data(
 
 
 def generated_recipe(generated: Trajectories) -> str:
-    """The recipe (``evolution.generate.recipe``) that made a phase's generated data, from its metadata."""
-    return str(generated.metadata.get("generator", {}).get("recipe", "plans"))
+    """The recipe (``evolution.generate.recipe``) that made a phase's generated data, from its metadata (data
+    without it: ``rollouts`` if they carry executed tracking errors, else ``plans``)."""
+    default = "rollouts" if ERROR_COLUMN in generated.extra else "plans"
+    return str(generated.metadata.get("generator", {}).get("recipe", default))
 
 
 def generation_tasks(env: Maze2D, settings: EvolutionSettings, n: int, seed: int) -> NavigationTasks:
