@@ -63,10 +63,11 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
 
 
 def _maze_phases_only(path: Path) -> None:
-    """The smoke profile's first evolution phase on the maze task alone (with its control)."""
+    """The smoke profile's first evolution phase on the maze task alone (with its control), in episodes of two plans."""
     raw = yaml.safe_load(path.read_text())
     raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=MAZE, phases={"phase1": {"previous": 0}})
-    raw["evolution"]["generate"] |= {"replan_every": 8}
+    raw["task"][MAZE]["env"] = {"episode_steps": 2 * raw["diffusion"]["horizon"]}
+    raw["evolution"]["generate"] |= {"replan_every": raw["diffusion"]["horizon"]}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
 
