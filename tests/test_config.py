@@ -110,6 +110,7 @@ def test_profile_list() -> None:
         "science",
         "science-medium",
         "science-large",
+        "science-umaze",
         *PAPER,
     }
 
@@ -137,6 +138,9 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert task.settings.env.maze == maze and task.settings.episode_steps == {"medium": 600, "large": 800}[maze]
         assert task.diffusion.horizon == {"medium": 256, "large": 384}[maze] and params.seeds == (0, 1, 2)
         assert task.model.dim == 16 and task.planner.sampler_steps == 4  # the quick profile's model and planner
+    if profile == "science-umaze":  # the quick profile on three seeds
+        assert params.tasks == (UMAZE,) and params.evolve == UMAZE and params.seeds == (0, 1, 2)
+        assert params.pretrain == load_params(PROFILES / "quick.yaml").pretrain
     if profile == "smoke":
         assert params.pretrain.steps == 20 and params.diffusion.horizon == 32
         maze = params.resolve(UMAZE)
