@@ -199,14 +199,13 @@ def check_cross_fields(p: Params) -> None:
     for name in p.tasks:  # entries not listed in `tasks` are type-checked only (another profile's tasks)
         check_task(p.task[name], p)
     if p.phases and p.evolve is not None:
-        n_steps = p.evolved.diffusion.n_steps
+        n_steps, recipes = p.evolved.diffusion.n_steps, evolution_recipes(p.evolved)
         for phase in p.phases:
             if phase.generate.sampler_steps > n_steps:
                 raise ConfigError(
                     f"phases.{phase.name}.generate.sampler_steps: must be in 1..diffusion.n_steps={n_steps} of "
                     f"{p.evolve}, got {phase.generate.sampler_steps}"
                 )
-            recipes = evolution_recipes(p.evolved)
             if phase.generate.recipe not in recipes:
                 raise ConfigError(
                     f"phases.{phase.name}.generate.recipe: {phase.generate.recipe!r} is not a recipe of the "

@@ -185,7 +185,6 @@ class Maze2DTaskParams:
                     f"phases.{phase.name}.discriminate.rule: the rule 'paper' has thresholds for umaze, medium and "
                     f"large only ({task.name} is not one); set evolution.discriminate.rule to quantile or top_k"
                 )
-        for phase in params.phases:
             if phase.generate.recipe == "rollouts":
                 self._check_rollouts(task, phase)
 
