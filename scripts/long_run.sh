@@ -13,10 +13,13 @@
 #       (models/.resume/), the other stages rerun from their start (minutes at most)
 #   bash scripts/long_run.sh status FOLDER
 #       the pinned commit, whether it runs, the stages left, the resume states and the log's last lines
+#   bash scripts/long_run.sh stop FOLDER
+#       stop the run and everything it started (to free the CPU for other work); `resume` continues it, training
+#       from its last checkpoint
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,15p' "$0" >&2; exit 2; }
+usage() { sed -n '4,18p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
@@ -108,7 +111,16 @@ case $action in
       echo "not running: $((total - left)) of $total stages done, $left left (continue: bash scripts/long_run.sh resume $folder)"
     fi
     ls models/.resume/ 2>/dev/null | sed 's/^/resume state: /' || true
-    tail -n 5 long_run.log 2>/dev/null | sed 's/^/log: /' || true
+    # progress bars rewrite their line with carriage returns: show each bar's latest state only
+    tail -c 20000 long_run.log 2>/dev/null | sed 's/.*\r//' | tail -n 5 | sed 's/^/log: /' || true
+    ;;
+  stop)
+    [ -f "$folder/.long_run.env" ] || die "$folder is not a long run"
+    pid=$(running_pid) || die "$folder is not running"
+    kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid"   # the run's process group (setsid): DVC and its stage
+    for _ in $(seq 30); do running_pid > /dev/null || break; sleep 1; done
+    if running_pid > /dev/null; then kill -KILL -- "-$pid" 2>/dev/null || kill -KILL "$pid"; fi
+    echo "stopped $folder (continue: bash scripts/long_run.sh resume $folder)"
     ;;
   *) usage ;;
 esac

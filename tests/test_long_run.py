@@ -98,3 +98,32 @@ def test_science_maze_runs_both_recipes_on_one_phase0_and_one_set_of_controls(tm
     assert not any(f"Running stage '{stage}@" in again for stage in ("collect", "pretrain", "finetune", "control"))
     assert json.loads((science / f"{MAZE}.json").read_text())[MAZE] == first
     assert json.loads((science / f"{MAZE}-rollouts.json").read_text())[MAZE] == second
+
+
+def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    (repo / "work.sh").write_text("sleep 600 &\nwait\n")  # a run with a child process, as DVC starts its stages
+    for cmd in (["git", "init", "-q"], ["git", "add", "work.sh"]):
+        run_tool(cmd, repo)
+    run_tool(["git", "-c", "user.email=t@example.com", "-c", "user.name=t", "commit", "-qm", "work"], repo)
+    folder = tmp_path / "run"
+    run_tool(["bash", SCRIPT, "start", str(folder), "--from", str(repo), "--script", "work.sh", "--venv", sys.prefix],
+             tmp_path)  # fmt: skip
+    pid = int((folder / "long_run.pid").read_text())
+    deadline = time.monotonic() + 60
+    while len(_group(pid)) < 2:  # the script and its child
+        assert time.monotonic() < deadline, _group(pid)
+        time.sleep(0.1)
+
+    out = run_tool(["bash", SCRIPT, "stop", str(folder)], tmp_path)
+    assert f"stopped {folder}" in out and "long_run.sh resume" in out
+    assert _group(pid) == []  # the script and its child are gone
+    again = subprocess.run(["bash", SCRIPT, "stop", str(folder)], capture_output=True, text=True)
+    assert again.returncode == 2 and "is not running" in again.stderr
+
+
+def _group(pgid: int) -> list[str]:
+    """The live processes of process group ``pgid``."""
+    out = subprocess.run(["ps", "-eo", "pgid=,pid=,stat="], capture_output=True, text=True).stdout.splitlines()
+    return [pid for g, pid, stat in (line.split() for line in out) if int(g) == pgid and not stat.startswith("Z")]
