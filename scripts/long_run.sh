@@ -39,11 +39,13 @@ while [ $# -gt 0 ]; do
   esac
 done
 
-running_pid() {  # the pid of the run in FOLDER if it is alive
+running_pid() {  # the pid of the run in FOLDER if it is alive (a zombie not yet reaped is not)
   [ -f "$folder/long_run.pid" ] || return 1
-  local pid
+  local pid state
   pid=$(cat "$folder/long_run.pid")
-  kill -0 "$pid" 2>/dev/null && echo "$pid"
+  kill -0 "$pid" 2>/dev/null || return 1
+  state=$(sed 's/.*) //' "/proc/$pid/stat" 2>/dev/null | cut -d' ' -f1)
+  [ "$state" != Z ] && echo "$pid"
 }
 
 environment() {  # the run's tools: the clone's own .venv, or VENV's with the clone's sources first

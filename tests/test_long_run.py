@@ -124,6 +124,13 @@ def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
 
 
 def _group(pgid: int) -> list[str]:
-    """The live processes of process group ``pgid``."""
-    out = subprocess.run(["ps", "-eo", "pgid=,pid=,stat="], capture_output=True, text=True).stdout.splitlines()
-    return [pid for g, pid, stat in (line.split() for line in out) if int(g) == pgid and not stat.startswith("Z")]
+    """The live (not zombie) processes of process group ``pgid``, read from /proc."""
+    members = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()  # after "pid (comm)": state, ppid, pgrp, ...
+        except OSError:  # the process ended while we looked
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            members.append(stat.parent.name)
+    return members
