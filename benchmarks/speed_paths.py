@@ -53,11 +53,15 @@ class MazePaths:
         bundle = replace(self.bundle, ema=copy.deepcopy(self.bundle.ema)) if compiled else self.bundle
         return Planner(bundle, make_sampler(sampler, steps), device, compiled=compiled)
 
-    def training_batch(self, device: torch.device) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
-        """A fixed batch of the profile's size and its start/goal inpainting conditions."""
+    def training_batch(
+        self, device: torch.device, size: int | None = None
+    ) -> tuple[torch.Tensor, dict[int, torch.Tensor]]:
+        """A fixed batch of ``size`` trajectories (default: the profile's batch size) and its start/goal inpainting
+        conditions."""
         model = self.bundle.diffusion
         gen = torch.Generator().manual_seed(0)
-        x = torch.rand(self.task.pretrain.batch_size, model.horizon, model.transition_dim, generator=gen) * 2 - 1
+        size = size or self.task.pretrain.batch_size
+        x = torch.rand(size, model.horizon, model.transition_dim, generator=gen) * 2 - 1
         x = x.to(device)
         return x, {0: x[:, 0, model.act_dim :], model.horizon - 1: x[:, -1, model.act_dim :]}
 
