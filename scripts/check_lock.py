@@ -1,5 +1,6 @@
-"""Check that requirements.lock satisfies pyproject.toml: every dependency (and the dev extra's) is pinned there at
-a version its specifier allows. Exit 1 naming the first mismatches and the command that relocks."""
+"""Check that the locks satisfy pyproject.toml: every dependency is pinned in requirements.lock, every dev-extra one
+in requirements.lock or requirements-dev.lock, at a version its specifier allows, and no package is in both. Exit 1
+naming the first mismatches and the command that relocks."""
 
 from __future__ import annotations
 
@@ -14,25 +15,39 @@ ROOT = Path(__file__).resolve().parents[1]
 SEPARATELY = {"torch"}  # installed on its own by scripts/setup.sh (the CPU build)
 
 
-def main() -> int:
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    wanted = [Requirement(r) for r in [*project["dependencies"], *project["optional-dependencies"]["dev"]]]
+def read_lock(path: Path) -> dict[str, str]:
+    """Package name (canonical) -> pinned version."""
     pinned = {}
-    for line in (ROOT / "requirements.lock").read_text().splitlines():
+    for line in path.read_text().splitlines():
         if line.strip() and not line.startswith("#"):
             name, version = line.split("==")
             pinned[canonicalize_name(name)] = version.strip()
+    return pinned
+
+
+def mismatches(wanted: list[Requirement], pinned: dict[str, str], lock_name: str) -> list[str]:
     problems = []
     for req in wanted:
         name = canonicalize_name(req.name)
         if name in SEPARATELY:
             continue
         if name not in pinned:
-            problems.append(f"{req.name} is not in requirements.lock")
+            problems.append(f"{req.name} is not in {lock_name}")
         elif not req.specifier.contains(pinned[name], prereleases=True):
             problems.append(f"{req.name}=={pinned[name]} does not satisfy {req}")
+    return problems
+
+
+def main() -> int:
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    runtime = read_lock(ROOT / "requirements.lock")
+    dev = read_lock(ROOT / "requirements-dev.lock")
+    problems = mismatches([Requirement(r) for r in project["dependencies"]], runtime, "requirements.lock")
+    dev_wanted = [Requirement(r) for r in project["optional-dependencies"]["dev"]]
+    problems += mismatches(dev_wanted, runtime | dev, "requirements.lock or requirements-dev.lock")
+    problems += [f"{name} is in both locks" for name in sorted(runtime.keys() & dev.keys())]
     if problems:
-        print(f"requirements.lock does not match pyproject.toml: {'; '.join(problems)} (run scripts/lock.sh)")
+        print(f"the locks do not match pyproject.toml: {'; '.join(problems)} (run scripts/lock.sh)")
         return 1
     return 0
 

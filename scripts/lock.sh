@@ -1,18 +1,46 @@
 #!/usr/bin/env bash
-# Re-resolve requirements.lock from pyproject.toml: a fresh virtual environment gets the project with its dev tools,
-# and every installed version is written down. Run after changing a dependency; commit the lock with it.
+# Re-resolve the locks from pyproject.toml: a fresh virtual environment gets the project with its dev tools and every
+# installed version is written down, split in one resolution into requirements.lock (what the pipeline needs: the
+# project's own dependencies) and requirements-dev.lock (what only the dev extra adds). Run after changing a
+# dependency; commit both locks with it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON="${PYTHON:-python3}"
 tmp="$(mktemp -d)"
 trap 'rm -rf "$tmp"' EXIT
 "$PYTHON" -m venv "$tmp/venv"
-"$tmp/venv/bin/pip" install --quiet "torch==2.13.0"
-"$tmp/venv/bin/pip" install --quiet ".[dev]"
-{
-  echo "# The exact versions scripts/setup.sh installs (with --no-deps), for Python $("$tmp/venv/bin/python" -c 'import sys; print(*sys.version_info[:2], sep=".")') on $(uname -m) Linux."
-  echo "# Made by scripts/lock.sh from pyproject.toml; torch (the CPU build, 2.13.0) is installed on its own."
-  "$tmp/venv/bin/pip" freeze --exclude-editable | grep -v -E "^(torch|adaptdiffuser)[=@ ]"
-} > requirements.lock.tmp
+pip=("$tmp/venv/bin/pip" install --quiet --no-compile)
+"${pip[@]}" "torch==2.13.0"
+"${pip[@]}" ".[dev]"
+"$tmp/venv/bin/pip" freeze --exclude-editable | grep -v -E "^(torch|adaptdiffuser)[=@ ]" > "$tmp/all.txt"
+# which of them the project alone needs: pip's resolution of "." constrained to the versions just installed
+{ cat "$tmp/all.txt"; echo "torch==2.13.0"; } > "$tmp/constraints.txt"
+"${pip[@]}" --dry-run --ignore-installed --report "$tmp/runtime.json" -c "$tmp/constraints.txt" .
+python_version="$("$tmp/venv/bin/python" -c 'import sys; print(*sys.version_info[:2], sep=".")')"
+"$tmp/venv/bin/python" - "$tmp/all.txt" "$tmp/runtime.json" "$python_version" "$(uname -m)" <<'PY'
+import json
+import re
+import sys
+
+all_path, report_path, python_version, machine = sys.argv[1:]
+canon = lambda name: re.sub(r"[-_.]+", "-", name).lower()  # noqa: E731
+runtime = {canon(item["metadata"]["name"]) for item in json.load(open(report_path))["install"]}
+pins = [line for line in open(all_path).read().splitlines() if "==" in line]
+run = [line for line in pins if canon(line.split("==")[0]) in runtime]
+dev = [line for line in pins if canon(line.split("==")[0]) not in runtime]
+with open("requirements.lock.tmp", "w") as out:
+    out.write(
+        "# The exact versions scripts/setup.sh installs (with --no-deps) to run the pipeline, for Python "
+        f"{python_version} on {machine} Linux.\n"
+        "# Made by scripts/lock.sh from pyproject.toml; torch (the CPU build, 2.13.0) is installed on its own, the dev tools\n"
+        "# (scripts/setup.sh --dev, for the tests) from requirements-dev.lock.\n" + "\n".join(run) + "\n"
+    )
+with open("requirements-dev.lock.tmp", "w") as out:
+    out.write(
+        "# The dev tools' exact versions (pyproject's dev extra), installed by scripts/setup.sh --dev on top of\n"
+        "# requirements.lock; made by scripts/lock.sh in the same resolution.\n" + "\n".join(dev) + "\n"
+    )
+print(f"requirements.lock: {len(run)} packages; requirements-dev.lock: {len(dev)}")
+PY
 mv requirements.lock.tmp requirements.lock
-echo "requirements.lock: $(grep -c "==" requirements.lock) packages"
+mv requirements-dev.lock.tmp requirements-dev.lock

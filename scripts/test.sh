@@ -2,7 +2,7 @@
 # README command 2 (and CI): set up, lint, and run the whole test suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh --dev
 # shellcheck disable=SC1091
 source .venv/bin/activate
 ruff check src pipeline tests benchmarks
