@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -293,3 +295,36 @@ def test_set_goal_state_accepts_free_positions_and_rejects_walls(umaze: Maze2D) 
     assert umaze.goal_cell == (3, 3) and umaze.reward(np.array([0.8, -1.2, 0, 0])) == 1.0
     with pytest.raises(ValueError, match="wall"):
         umaze.set_goal_state(np.array([-1.0, 0.0, 0.0, 0.0]))
+
+
+def test_point_mass_steps_exactly_as_pointmaze_and_compiles_its_maze_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The simulator's point mass (its maze compiled once per process) follows the same states, bit for bit, as a
+    freshly built gymnasium-robotics ``PointMazeEnv`` through wall contacts, beside other simulators of the same maze;
+    and making more simulators writes no more MJCF files."""
+    from gymnasium_robotics.envs.maze.point_maze import PointMazeEnv
+
+    from adaptdiffuser.families.maze2d import point_mass
+
+    wall_map = parse_layout(MAZES["medium"]).wall_map()
+    reference = PointMazeEnv(maze_map=wall_map, continuing_task=True).point_env
+    monkeypatch.setattr(point_mass, "_compiled", {})  # as in a new process
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # PointMaze writes its MJCF files into the temp folder
+    ours = [point_mass.make_point_mass(wall_map) for _ in range(3)]
+    assert len(list(tmp_path.glob("*.xml"))) == 1
+    ours += [point_mass.make_point_mass(wall_map) for _ in range(3)]
+    assert len(list(tmp_path.glob("*.xml"))) == 1
+    rng = np.random.default_rng(0)
+    start = (np.array([-1.5, 1.5]), np.array([0.3, -0.2]))
+    for env in [reference, *ours]:
+        env.set_state(*start)
+    contacts = 0
+    for _ in range(400):
+        action = rng.uniform(-1.0, 1.0, size=2)
+        expected, *_ = reference.step(action)
+        contacts += reference.data.ncon > 0
+        for env in ours:
+            observed, *_ = env.step(action)
+            np.testing.assert_array_equal(observed, expected)
+    assert contacts > 0  # the walk hit walls, where the solver's state matters

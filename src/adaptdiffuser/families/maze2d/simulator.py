@@ -16,6 +16,7 @@ import numpy as np
 
 from adaptdiffuser.contract import Simulator, Step
 from adaptdiffuser.families.maze2d.layouts import EPISODE_STEPS, MAZES, Layout, parse_layout
+from adaptdiffuser.families.maze2d.point_mass import make_point_mass
 
 Cell = tuple[int, int]
 
@@ -149,7 +150,6 @@ class Maze2D(PlanningEnv):
         tracking_d_gain: float = 1.0,
     ) -> None:
         silence_adroit_notice()
-        from gymnasium_robotics.envs.maze.point_maze import PointMazeEnv
 
         self.layout = layout
         self.name = name
@@ -164,8 +164,7 @@ class Maze2D(PlanningEnv):
         self.expert_waypoint_radius = expert_waypoint_radius
         self.tracking_p_gain = tracking_p_gain
         self.tracking_d_gain = tracking_d_gain
-        self._maze_env = PointMazeEnv(maze_map=layout.wall_map(), continuing_task=True)
-        self._point = self._maze_env.point_env
+        self._point = make_point_mass(layout.wall_map())
         self._expert_rng = np.random.default_rng(0)
         self._waypoints: list[np.ndarray] = []
         self._waypoint_index = 0
