@@ -17,30 +17,34 @@ pip=("$tmp/venv/bin/pip" install --quiet --no-compile)
 { cat "$tmp/all.txt"; echo "torch==2.13.0"; } > "$tmp/constraints.txt"
 "${pip[@]}" --dry-run --ignore-installed --report "$tmp/runtime.json" -c "$tmp/constraints.txt" .
 python_version="$("$tmp/venv/bin/python" -c 'import sys; print(*sys.version_info[:2], sep=".")')"
-"$tmp/venv/bin/python" - "$tmp/all.txt" "$tmp/runtime.json" "$python_version" "$(uname -m)" <<'PY'
+"$tmp/venv/bin/python" - "$tmp" "$python_version" "$(uname -m)" <<'PY'
 import json
 import re
 import sys
 
-all_path, report_path, python_version, machine = sys.argv[1:]
+tmp, python_version, machine = sys.argv[1:]
 canon = lambda name: re.sub(r"[-_.]+", "-", name).lower()  # noqa: E731
-runtime = {canon(item["metadata"]["name"]) for item in json.load(open(report_path))["install"]}
-pins = [line for line in open(all_path).read().splitlines() if "==" in line]
-run = [line for line in pins if canon(line.split("==")[0]) in runtime]
-dev = [line for line in pins if canon(line.split("==")[0]) not in runtime]
-with open("requirements.lock.tmp", "w") as out:
+runtime = {canon(item["metadata"]["name"]) for item in json.load(open(f"{tmp}/runtime.json"))["install"]}
+lines = [line for line in open(f"{tmp}/all.txt").read().splitlines() if line.strip()]
+unpinned = [line for line in lines if "==" not in line]
+if unpinned:
+    sys.exit(f"lock.sh: not a pinned release, cannot be locked: {unpinned}")
+run = [line for line in lines if canon(line.split("==")[0]) in runtime]
+dev = [line for line in lines if canon(line.split("==")[0]) not in runtime]
+with open(f"{tmp}/requirements.lock", "w") as out:
     out.write(
         "# The exact versions scripts/setup.sh installs (with --no-deps) to run the pipeline, for Python "
-        f"{python_version} on {machine} Linux.\n"
-        "# Made by scripts/lock.sh from pyproject.toml; torch (the CPU build, 2.13.0) is installed on its own, the dev tools\n"
-        "# (scripts/setup.sh --dev, for the tests) from requirements-dev.lock.\n" + "\n".join(run) + "\n"
+        f"{python_version} on {machine} Linux.\n# Made by scripts/lock.sh from pyproject.toml; torch (the CPU build, "
+        "2.13.0) is installed on its own, the dev tools\n# (scripts/setup.sh --dev, for the tests) from "
+        "requirements-dev.lock.\n" + "\n".join(run) + "\n"
     )
-with open("requirements-dev.lock.tmp", "w") as out:
+with open(f"{tmp}/requirements-dev.lock", "w") as out:
     out.write(
         "# The dev tools' exact versions (pyproject's dev extra), installed by scripts/setup.sh --dev on top of\n"
         "# requirements.lock; made by scripts/lock.sh in the same resolution.\n" + "\n".join(dev) + "\n"
     )
 print(f"requirements.lock: {len(run)} packages; requirements-dev.lock: {len(dev)}")
 PY
-mv requirements.lock.tmp requirements.lock
-mv requirements-dev.lock.tmp requirements-dev.lock
+for lock in requirements.lock requirements-dev.lock; do   # each replaced whole (a rename within the folder)
+  cp "$tmp/$lock" ".$lock.tmp" && mv ".$lock.tmp" "$lock"
+done

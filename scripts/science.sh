@@ -9,7 +9,7 @@ cd "$(dirname "$0")/.."
 source .venv/bin/activate
 adaptdiffuser profile science
 mkdir -p metrics/science
-# `evolution` is one section for whichever task evolves: U-Maze uses the quick profile's, Hopper the
+# `evolution` is one section for whichever task evolves: U-Maze uses the science profile's, Hopper the
 # quick-locomotion profile's (value-guided DDPM plans from dataset states and resets, the paper's thresholds).
 adaptdiffuser set evolve=maze2d-umaze
 dvc repro

@@ -302,19 +302,23 @@ def test_point_mass_steps_exactly_as_pointmaze_and_compiles_its_maze_once(
 ) -> None:
     """The simulator's point mass (its maze compiled once per process) follows the same states, bit for bit, as a
     freshly built gymnasium-robotics ``PointMazeEnv`` through wall contacts, beside other simulators of the same maze;
-    and making more simulators writes no more MJCF files."""
+    making six of them writes and compiles the maze's MJCF once and leaves no file behind."""
+    from gymnasium_robotics.envs.maze.maze_v4 import Maze
     from gymnasium_robotics.envs.maze.point_maze import PointMazeEnv
 
     from adaptdiffuser.families.maze2d import point_mass
 
     wall_map = parse_layout(MAZES["medium"]).wall_map()
-    reference = PointMazeEnv(maze_map=wall_map, continuing_task=True).point_env
-    monkeypatch.setattr(point_mass, "_compiled", {})  # as in a new process
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # PointMaze writes its MJCF files into the temp folder
-    ours = [point_mass.make_point_mass(wall_map) for _ in range(3)]
-    assert len(list(tmp_path.glob("*.xml"))) == 1
-    ours += [point_mass.make_point_mass(wall_map) for _ in range(3)]
-    assert len(list(tmp_path.glob("*.xml"))) == 1
+    reference = PointMazeEnv(maze_map=wall_map, continuing_task=True).point_env
+    left_by_pointmaze = set(tmp_path.glob("*.xml"))
+    assert len(left_by_pointmaze) == 1
+    monkeypatch.setattr(point_mass, "_compiled", {})  # as in a new process
+    made = []
+    make_maze = Maze.make_maze.__func__
+    monkeypatch.setattr(Maze, "make_maze", classmethod(lambda cls, *args: made.append(args) or make_maze(cls, *args)))
+    ours = [point_mass.make_point_mass(wall_map) for _ in range(6)]
+    assert len(made) == 1 and set(tmp_path.glob("*.xml")) == left_by_pointmaze
     rng = np.random.default_rng(0)
     start = (np.array([-1.5, 1.5]), np.array([0.3, -0.2]))
     for env in [reference, *ours]:

@@ -1,48 +1,50 @@
 """gymnasium-robotics' point mass in a maze, its MuJoCo model compiled once per maze and process.
 
 PointMaze writes a new MJCF file (into the system temp folder, never removed) and compiles it for every
-environment it makes, about 75 ms each on 2 cores; an evaluation makes one simulator per episode. Here the maze's
-file is written and compiled once per wall map; every point mass gets its own copy of that compiled model and fresh
-``MjData``, which is what compiling the same file again gives, so each simulator starts and steps exactly as a new
-``PointMazeEnv``'s ``point_env`` would. The file is removed when the process exits.
+environment it makes, about 75 ms each on 2 cores; an evaluation makes one simulator per episode. Here each maze's
+file is written, compiled and removed once per process; every point mass gets its own copy of that compiled model
+and fresh ``MjData``, which is what compiling the same file again gives, so each simulator starts and steps exactly
+as a new ``PointMazeEnv``'s ``point_env`` would (gymnasium-robotics and gymnasium, MIT licence: the asset path, the
+camera distance and the framebuffer sizes below follow ``PointMazeEnv`` and ``MujocoEnv``).
 """
 
 from __future__ import annotations
 
-import atexit
 import copy
 import functools
 import os
+import threading
 from typing import Any
 
 WallMap = list[list[int]]
 
 _MAZE_HEIGHT = 0.4  # PointMazeEnv's wall height and cell scale
 _SCALE = 1
-_compiled: dict[str, tuple[str, Any]] = {}  # wall map -> (its MJCF file, the compiled MjModel)
+_compiled: dict[str, Any] = {}  # repr(wall map) -> the compiled MjModel
+_compiling = threading.Lock()
 
 
-def _remove_files() -> None:
-    for path, _ in _compiled.values():
-        if os.path.exists(path):
-            os.remove(path)
+def _agent_xml() -> str:
+    """The packaged MJCF of the point mass alone (what PointMazeEnv adds the maze to)."""
+    from gymnasium_robotics.envs.maze import point_maze
+
+    return os.path.join(os.path.dirname(os.path.realpath(point_maze.__file__)), "../assets/point/point.xml")
 
 
-atexit.register(_remove_files)
-
-
-def _maze_model(wall_map: WallMap) -> tuple[str, Any]:
-    """The MJCF file and compiled model of the point mass in ``wall_map`` (made on first use)."""
+def _maze_model(wall_map: WallMap) -> Any:
+    """The compiled model of the point mass in ``wall_map`` (compiled on first use, its file then removed)."""
     key = repr(wall_map)
-    if key not in _compiled:
-        import mujoco
-        from gymnasium_robotics.envs.maze import point_maze
-        from gymnasium_robotics.envs.maze.maze_v4 import Maze
+    with _compiling:
+        if key not in _compiled:
+            import mujoco
+            from gymnasium_robotics.envs.maze.maze_v4 import Maze
 
-        agent_xml = os.path.join(os.path.dirname(os.path.realpath(point_maze.__file__)), "../assets/point/point.xml")
-        _, path = Maze.make_maze(agent_xml, wall_map, _SCALE, _MAZE_HEIGHT)
-        _compiled[key] = (path, mujoco.MjModel.from_xml_path(path))
-    return _compiled[key]
+            _, path = Maze.make_maze(_agent_xml(), wall_map, _SCALE, _MAZE_HEIGHT)
+            try:
+                _compiled[key] = mujoco.MjModel.from_xml_path(path)
+            finally:
+                os.remove(path)
+        return _compiled[key]
 
 
 @functools.cache
@@ -66,7 +68,7 @@ def _point_env_class() -> type:
 
 
 def make_point_mass(wall_map: WallMap) -> Any:
-    """A ``PointEnv`` (``set_state``, ``step``, ``data``) in the maze ``wall_map``, as ``PointMazeEnv`` builds it."""
-    path, model = _maze_model(wall_map)
+    """A ``PointEnv`` (``set_state``, ``step``, ``data``) in the maze ``wall_map``, as ``PointMazeEnv`` builds it.
+    (``xml_file`` only has to exist: the model is the compiled maze's, never read from it.)"""
     camera = {"distance": 12.5 if len(wall_map) > 8 else 8.8}
-    return _point_env_class()(model, xml_file=path, default_camera_config=camera)
+    return _point_env_class()(_maze_model(wall_map), xml_file=_agent_xml(), default_camera_config=camera)
