@@ -19,11 +19,11 @@ pip=("$tmp/venv/bin/pip" install --quiet --no-compile)
 python_version="$("$tmp/venv/bin/python" -c 'import sys; print(*sys.version_info[:2], sep=".")')"
 "$tmp/venv/bin/python" - "$tmp" "$python_version" "$(uname -m)" <<'PY'
 import json
-import re
 import sys
 
+from packaging.utils import canonicalize_name as canon
+
 tmp, python_version, machine = sys.argv[1:]
-canon = lambda name: re.sub(r"[-_.]+", "-", name).lower()  # noqa: E731
 runtime = {canon(item["metadata"]["name"]) for item in json.load(open(f"{tmp}/runtime.json"))["install"]}
 lines = [line for line in open(f"{tmp}/all.txt").read().splitlines() if line.strip()]
 unpinned = [line for line in lines if "==" not in line]

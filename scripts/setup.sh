@@ -5,8 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 dev=false
-[ $# -le 1 ] || { echo "usage: bash scripts/setup.sh [--dev]" >&2; exit 2; }
-case "${1:-}" in
+case "$*" in
   --dev) dev=true ;;
   "") ;;
   *) echo "usage: bash scripts/setup.sh [--dev]" >&2; exit 2 ;;
