@@ -162,26 +162,37 @@ def test_ema_is_a_copy_before_ema_start(dataset: WindowDataset, new_bundle) -> N
     assert all(torch.equal(ema[k], raw[k]) for k in raw)
 
 
-def test_resume_file_holds_the_last_checkpoint_before_the_end(
-    tmp_path: Path, dataset: WindowDataset, new_bundle
-) -> None:
+def test_resume_file_holds_the_finished_training(tmp_path: Path, dataset: WindowDataset, new_bundle) -> None:
     resume = tmp_path / "resume.pt"
-    first = train(new_bundle(0), dataset, dataclasses.replace(CFG, steps=20), CPU, resume, "run", progress=False)
+    short = dataclasses.replace(CFG, steps=20)
+    first_bundle = new_bundle(0)
+    first = train(first_bundle, dataset, short, CPU, resume, "run", progress=False)
     assert [s for s, _ in first] == [5, 10, 15, 20]
-    # checkpoints are written at multiples of checkpoint_every strictly before the end (the end is the bundle)
+    # checkpoints are written at multiples of checkpoint_every and at the end, so that a stage killed after this
+    # training (on its next seed) does not train it again
     state = torch.load(resume, weights_only=False)
-    assert state["step"] == 10 and state["run_id"] == "run"
-    assert state["history"] == first[:2]
+    assert state["step"] == 20 and state["run_id"] == "run"
+    assert state["history"] == first
 
-    # a longer run with the same run_id continues from that checkpoint
-    logged: list[int] = []
+    # the same training again: nothing is trained, the finished weights and Adam state come back
+    again_bundle, logged = new_bundle(7), []
+    again = train(
+        again_bundle, dataset, short, CPU, resume, "run", on_log=lambda s, _: logged.append(s), progress=False
+    )
+    assert logged == [] and again == first
+    assert_same_weights(weights(again_bundle), weights(first_bundle))
+    assert again_bundle.optimizer["adam"]["state"].keys() == first_bundle.optimizer["adam"]["state"].keys()
+    for key, moments in first_bundle.optimizer["adam"]["state"].items():
+        assert torch.equal(again_bundle.optimizer["adam"]["state"][key]["exp_avg"], moments["exp_avg"])
+
+    # a longer run with the same run_id continues from the end of the shorter one
     second = train(
         new_bundle(7), dataset, CFG, CPU, resume, "run", on_log=lambda s, _: logged.append(s), progress=False
     )
-    assert logged == [15, 20, 25, 30]
-    assert second[:4] == first  # restored entries, then the same steps 11-20 recomputed exactly
+    assert logged == [25, 30]
+    assert second[:4] == first
     assert [s for s, _ in second] == [5, 10, 15, 20, 25, 30]
-    assert torch.load(resume, weights_only=False)["step"] == 20
+    assert torch.load(resume, weights_only=False)["step"] == 30
 
 
 def test_killed_and_resumed_training_matches_straight_training(

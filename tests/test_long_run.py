@@ -20,9 +20,10 @@ MAZE = "maze2d-umaze"
 
 
 def _phase0_of_one_task(path: Path) -> None:
-    """Phase 0 of the maze task alone, with a pretraining long enough to be killed between its checkpoints."""
+    """Phase 0 of the maze task alone over two training seeds, with a pretraining long enough to be killed between
+    its checkpoints."""
     raw = yaml.safe_load(path.read_text())
-    raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={})
+    raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={}, seeds=[0, 1])
     raw["pretrain"] |= {"steps": 600, "checkpoint_every": 100}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
@@ -40,8 +41,9 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     pid = int((folder / "long_run.pid").read_text())
     deadline = time.monotonic() + 600
     resume = folder / "models" / ".resume"
-    # kill the run once pretraining has written a whole resume state (not only its hidden temporary file)
-    while not (resume.is_dir() and any(not state.name.startswith(".") for state in resume.iterdir())):
+    # kill the run once the second seed's pretraining has written a whole resume state (not only its hidden
+    # temporary file): the first seed's training is finished by then
+    while not (resume / f"{MAZE}-phase0-seed1.pt").exists():
         assert time.monotonic() < deadline, (folder / "long_run.log").read_text()
         time.sleep(0.2)
     os.killpg(pid, signal.SIGKILL)
@@ -55,7 +57,9 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
 
     run_tool(["bash", SCRIPT, "resume", str(folder), "--foreground"], tmp_path)
     log = (folder / "long_run.log").read_text()
-    assert "resuming training from step" in log  # pretraining went on from its checkpoint, not from step 0
+    # the first seed is not trained again, the second goes on from its checkpoint, not from step 0
+    assert "resuming training from step 600" in log
+    assert any(f"resuming training from step {step} " in log for step in range(100, 600, 100))
     status = run_tool(["bash", SCRIPT, "status", str(folder)], tmp_path)
     assert "0 left" in status and "resume state:" not in status
     assert run_tool(["git", "rev-parse", "HEAD"], folder).strip() == head

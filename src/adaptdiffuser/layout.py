@@ -43,6 +43,12 @@ def model_dir(task: str, phase: int, seed: int, control: bool = False) -> Path:
     return phase_models_dir(task, phase, control) / seed_name(seed)
 
 
+def resume_path(task: str, phase: int, seed: int, control: bool = False) -> Path:
+    """Where the training of that model keeps its resume state (ignored by git and DVC; a training stage removes
+    its models' states once all of them are saved)."""
+    return Path("models") / ".resume" / f"{task}-{phase_name(phase, control)}-{seed_name(seed)}.pt"
+
+
 def value_dir(task: str, seed: int) -> Path:
     """The task's learned value function for a training seed, beside its phase-0 model (written by pretrain)."""
     return model_dir(task, 0, seed) / "value"

@@ -133,7 +133,9 @@ def train(
     runs under ``torch.compile`` (the first step compiles; weights and checkpoints as without). ``on_checkpoint``
     is called with the step count every ``checkpoint_every`` steps and at the end, the EMA up to date, before that
     step's resume state is written (a run killed inside it redoes the step): a learning curve evaluates the EMA
-    there (it must not touch the raw weights). Returns the
+    there (it must not touch the raw weights). The resume state is written at the end too, so that a stage killed
+    after this training (on a later seed, say) finds it finished instead of training it again; the caller removes
+    it once everything it trains is saved. Returns the
     logged ``(step, loss)`` pairs of the whole run (including those before a resume).
     """
     model, ema = bundle.diffusion.to(device), bundle.ema.to(device)
@@ -188,7 +190,7 @@ def train(
         log.step_done(done)
         if on_checkpoint is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
             on_checkpoint(done)
-        if resume_path is not None and done % cfg.checkpoint_every == 0 and done < cfg.steps:
+        if resume_path is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
             state = {
                 "run_id": run_id,
                 "step": done,

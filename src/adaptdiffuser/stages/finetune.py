@@ -15,7 +15,7 @@ from adaptdiffuser.config import Params, PretrainParams, TaskParams
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
 from adaptdiffuser.io import atomic_dir
-from adaptdiffuser.layout import model_dir, phase_models_dir, phase_name, seed_name, selected_path
+from adaptdiffuser.layout import model_dir, phase_models_dir, phase_name, resume_path, selected_path
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed, training_seed
 from adaptdiffuser.stages.common import file_digest
@@ -46,6 +46,8 @@ def run_finetune(
     returns the phase's models folder."""
     for seed in params.seeds:
         finetune_seed(params, task_name, root, phase, device, seed, progress, control)
+    for seed in params.seeds:  # kept until every seed is saved: a stage killed on seed s skips the seeds before it
+        (root / resume_path(task_name, phase, seed, control)).unlink(missing_ok=True)
     return root / phase_models_dir(task_name, phase, control)
 
 
@@ -99,7 +101,7 @@ def finetune_seed(
         mlflow.log_metrics(
             {f"windows.{name}": len(p) for name, p in zip(["expert", *synthetic_info], parts, strict=True)}
         )
-        resume = root / "models" / ".resume" / f"{task.name}-{phase_name(phase, control)}-{seed_name(seed)}.pt"
+        resume = root / resume_path(task.name, phase, seed, control)
         resume.parent.mkdir(parents=True, exist_ok=True)
         history = train(
             bundle,
@@ -131,5 +133,4 @@ def finetune_seed(
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")
         label, primary = phase_name(phase, control), seed == params.seeds[0]
         log_model(bundle.ema, out, task.name, label, seed, primary, {"stage": stage, "previous": cfg.previous})
-        resume.unlink(missing_ok=True)
     return out

@@ -14,7 +14,7 @@ from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import WindowDataset, joint_array
 from adaptdiffuser.family_registry import get_family
-from adaptdiffuser.layout import model_dir, phase_models_dir, seed_name
+from adaptdiffuser.layout import model_dir, phase_models_dir, resume_path
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.stages.training_data import expert_training_data, pretrain_config
 from adaptdiffuser.stages.value import run_value
@@ -29,6 +29,8 @@ def run_pretrain(params: Params, task_name: str, root: Path, device: torch.devic
     into ``models/<task>/phase0/seed<s>/value``."""
     for seed in params.seeds:
         pretrain_seed(params, task_name, root, device, seed, progress)
+    for seed in params.seeds:  # kept until every seed is saved: a stage killed on seed s skips the seeds before it
+        (root / resume_path(task_name, 0, seed)).unlink(missing_ok=True)
     return root / phase_models_dir(task_name, 0)
 
 
@@ -85,7 +87,7 @@ def pretrain_seed(
                 "parameters": sum(p.numel() for p in bundle.diffusion.parameters()),
             }
         )
-        resume = root / "models" / ".resume" / f"{task.name}-phase0-{seed_name(seed)}.pt"
+        resume = root / resume_path(task.name, 0, seed)
         resume.parent.mkdir(parents=True, exist_ok=True)
         history = train(
             bundle,
@@ -104,7 +106,6 @@ def pretrain_seed(
         save_loss_curve(history, curve)
         mlflow.log_artifacts(str(out), artifact_path="checkpoint")  # weights, config and the loss curve
         log_model(bundle.ema, out, task.name, "phase0", seed, seed == params.seeds[0], {"stage": "pretrain"})
-        resume.unlink(missing_ok=True)
     if family.uses_value_function:
         run_value(params, task.name, root, device, seed, progress=progress)
     return out
