@@ -10,6 +10,7 @@ import torch
 
 from adaptdiffuser.checkpoint import ModelBundle
 from adaptdiffuser.contract import Controller
+from adaptdiffuser.diffusion.conditions import Projection
 from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, Objective, ValueGuidance
 from adaptdiffuser.diffusion.noise import RowNoise
 from adaptdiffuser.diffusion.samplers import Sampler
@@ -51,11 +52,13 @@ class Planner:
         goals: np.ndarray | None,
         seeds: Sequence[int] | np.ndarray,
         guidance: GuidanceBase | None = None,
+        project: Projection | None = None,
     ) -> np.ndarray:
         """Plans ``[batch, horizon, act_dim + obs_dim]`` in raw units from ``starts`` (and to ``goals`` when the
-        model is goal-conditioned; ``None`` for start-conditioned models), optionally guided. ``seeds`` holds one
-        seed per row: a row's plan depends on its own seed, start, goal and guidance, not on the other rows."""
-        x = self.sample(starts, goals, seeds, guidance)
+        model is goal-conditioned; ``None`` for start-conditioned models), optionally guided and constrained by
+        ``project`` (see :meth:`Sampler.sample`). ``seeds`` holds one seed per row: a row's plan depends on its own
+        seed, start, goal and guidance, not on the other rows."""
+        x = self.sample(starts, goals, seeds, guidance, project=project)
         return self.normalizer.unnormalize(x.double().cpu().numpy())
 
     def sample(
@@ -65,6 +68,7 @@ class Planner:
         seeds: Sequence[int] | np.ndarray,
         guidance: GuidanceBase | None = None,
         warm_start: tuple[torch.Tensor, int] | None = None,
+        project: Projection | None = None,
     ) -> torch.Tensor:
         """Like :meth:`plan`, but the normalized trajectories as a tensor on the planner's device; ``warm_start``
         (normalized trajectories, diffusion step) as in :meth:`Sampler.sample`."""
@@ -74,7 +78,7 @@ class Planner:
         conditions = {0: self._normalize_states(starts)}
         if goals is not None:
             conditions[self.horizon - 1] = self._normalize_states(goals)
-        return self.sampler.sample(self.model, conditions, noise, guidance, warm_start)
+        return self.sampler.sample(self.model, conditions, noise, guidance, warm_start, project)
 
     def actions(self, x: torch.Tensor) -> np.ndarray:
         """The raw first actions ``[batch, act_dim]`` of normalized trajectories ``x``."""

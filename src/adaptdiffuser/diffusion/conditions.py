@@ -7,6 +7,9 @@ from collections.abc import Callable
 import torch
 
 Conditions = dict[int, torch.Tensor]
+#: a family's own constraint on plans, applied after the inpainting at every denoising step: normalized trajectories
+#: ``[batch, horizon, transition]`` in, the same shape out (e.g. KUKA's blocks kept where they rest)
+Projection = Callable[[torch.Tensor], torch.Tensor]
 
 
 def apply_inpainting(x: torch.Tensor, conditions: Conditions, act_dim: int) -> torch.Tensor:

@@ -9,7 +9,7 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from adaptdiffuser.diffusion.conditions import Conditions, apply_inpainting
+from adaptdiffuser.diffusion.conditions import Conditions, Projection, apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.diffusion.guidance import GuidanceBase
 from adaptdiffuser.diffusion.noise import RowNoise
@@ -44,11 +44,13 @@ class Sampler(ABC):
         noise: RowNoise,
         guidance: GuidanceBase | None = None,
         warm_start: tuple[torch.Tensor, int] | None = None,
+        project: Projection | None = None,
     ) -> torch.Tensor:
         """Run the chain from pure noise; return normalized trajectories ``[len(noise), horizon, transition]``,
         row ``i`` drawing its initial and per-step noise from row ``i`` of ``noise`` only. With ``guidance``, each
         step first calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), then adds
         ``guidance.mean_shift`` to the step's mean (reward guidance, paper Eq. 5) before noise and inpainting.
+        ``project`` (a family's constraint) is applied after the inpainting, at the start and after every step.
 
         ``warm_start = (x0, t0)`` starts instead from the normalized trajectories ``x0`` noised to diffusion step
         ``t0`` (SDEdit-style partial noising) and visits only this sampler's steps below ``t0``: fewer network
@@ -70,7 +72,12 @@ class Sampler(ABC):
             x = diffusion.q_sample(x0, tt, noise.randn(shape))
             steps = [t0, *(t for t in steps if t < t0)]
         act_dim = diffusion.act_dim
-        x = apply_inpainting(x, conditions, act_dim)
+
+        def constrain(x: torch.Tensor) -> torch.Tensor:
+            x = apply_inpainting(x, conditions, act_dim)
+            return x if project is None else project(x)
+
+        x = constrain(x)
         for t, t_prev in zip(steps, [*steps[1:], -1], strict=True):
             if guidance is not None:
                 x = guidance.before_denoise(x, t, self.log_variance(diffusion, t, t_prev).exp(), conditions, act_dim)
@@ -79,7 +86,7 @@ class Sampler(ABC):
                 mean = mean + guidance.mean_shift(mean, log_var.exp())
             if self.stochastic and t_prev >= 0:
                 mean = mean + (0.5 * log_var).exp() * noise.randn(x.shape[1:])
-            x = apply_inpainting(mean, conditions, act_dim)
+            x = constrain(mean)
         return x
 
 

@@ -21,7 +21,7 @@ from adaptdiffuser.data.schema import SchemaError, Trajectories
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.evolution.discriminator import SelectionRule, generic_selection_rule, passes_tracking, select
 from adaptdiffuser.families.kuka.dataset import state_episodes
-from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance, plan_commands
+from adaptdiffuser.families.kuka.execution import place_guidance, plan_commands, task_controller
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 from adaptdiffuser.seeding import derive_seed
 
@@ -75,7 +75,7 @@ def generate_episodes(
         if not len(tasks):
             continue
         guidance = place_guidance(planner, alpha, first)
-        controller = ReplanningController(planner, derive_seed(seed, setup), guidance, record=True)
+        controller = task_controller(task, planner, derive_seed(seed, setup), guidance, record=True)
         offset = int(tasks[0])
         result = run_episodes(
             lambda setup=setup: make_simulator(task, "pick_place", setup),

@@ -9,8 +9,9 @@ import numpy as np
 import torch
 
 from adaptdiffuser.contract import Controller
+from adaptdiffuser.diffusion.conditions import Projection
 from adaptdiffuser.diffusion.guidance import GuidanceBase, Objective
-from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_BLOCKS, N_JOINTS, block_position_columns
+from adaptdiffuser.families.kuka.scene import BLOCK_DIMS, FLAG_COLUMNS, N_BLOCKS, N_JOINTS, block_position_columns
 from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS
 from adaptdiffuser.seeding import derive_seed
 
@@ -37,12 +38,38 @@ class PlaceObjective(Objective):
         return -torch.sqrt((delta**2).sum(-1) + 1e-12).sum(-1)
 
 
+def resting_blocks_pinned(planner) -> Projection:
+    """The plan's blocks rest where they really are until the plan picks them up: for each block, every planned step
+    before the block's suction flag first turns on (> 0.5) gets the block's pose (xyz and quaternion) of the plan's
+    first step, the real one (inpainted). Works on ``planner``'s normalized trajectories."""
+    act, normalizer = planner.act_dim, planner.normalizer
+    flags = [act + c for c in FLAG_COLUMNS]
+    half = np.zeros((1, act + N_JOINTS + N_BLOCKS * BLOCK_DIMS))
+    half[0, flags] = 0.5
+    threshold = torch.as_tensor(normalizer.normalize(half)[0, flags], dtype=planner.dtype, device=planner.device)
+    poses = torch.tensor([[act + N_JOINTS + b * BLOCK_DIMS + k for k in range(7)] for b in range(N_BLOCKS)])
+    flag_index = torch.tensor(flags)
+
+    def project(x: torch.Tensor) -> torch.Tensor:
+        on = x[:, :, flag_index.to(x.device)] > threshold  # [batch, horizon, blocks]
+        resting = torch.cummax(on.to(torch.int8), dim=1).values == 0  # before the flag's first step on
+        x = x.clone()
+        for b in range(N_BLOCKS):
+            cols = poses[b].to(x.device)
+            x[:, :, cols] = torch.where(resting[:, :, b : b + 1], x[:, :1, cols], x[:, :, cols])
+        return x
+
+    return project
+
+
 class ReplanningController(Controller):
     """Plans ``horizon`` states from the current observation and executes them open loop, one planned state per
-    step; replans every ``horizon - 1`` steps (so ``replans`` plans fill an episode). Plan ``r`` of episode ``e``
-    is seeded by ``(seed, e, r)``; ``guidance(r, n)`` gives plan ``r``'s guidance for ``n`` episodes (or None).
-    With ``record``, :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the
-    state each step was commanded to reach), episodes in the order they ran."""
+    step; replans every ``replan_every`` steps (default ``horizon - 1``, the whole plan, so ``replans`` plans fill an
+    episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, n)`` gives the guidance of
+    the ``k``-th stretch of ``horizon - 1`` steps for ``n`` episodes (or None), for every plan drawn in it; each plan
+    is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given. With ``record``,
+    :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the state each step was
+    commanded to reach), episodes in the order they ran."""
 
     def __init__(
         self,
@@ -50,41 +77,61 @@ class ReplanningController(Controller):
         seed: int,
         guidance: Callable[[int, int], GuidanceBase | None] | None = None,
         record: bool = False,
+        project: Projection | None = None,
+        replan_every: int | None = None,
     ) -> None:
         self.planner = planner
         self.seed = seed
         self.guidance = guidance
         self.span = planner.horizon - 1
+        self.every = self.span if replan_every is None else replan_every
+        if not 0 < self.every <= self.span:
+            raise ValueError(f"replan_every must be in [1, {self.span}] (horizon - 1), got {replan_every}")
+        self.project = project
         self.record = record
-        self.recorded: list[np.ndarray] = []
+        self._rows: list[list[np.ndarray]] = []
+
+    @property
+    def recorded(self) -> list[np.ndarray]:
+        return [np.stack(rows) for rows in self._rows]
 
     def begin(self, envs, obs, episodes):
         self.episodes = list(episodes)
         self.first_plans = None
         self.plans: np.ndarray | None = None
         if self.record:
-            self.batch_start = len(self.recorded)
-            self.recorded.extend(o[None].copy() for o in obs)
+            self.batch_start = len(self._rows)
+            self._rows.extend([o.copy()] for o in obs)
 
     def act(self, envs, obs, t):
-        step, replan = t % self.span, t // self.span
+        step, replan = t % self.every, t // self.every
         if step == 0:
             seeds = [derive_seed(self.seed, e, replan) for e in self.episodes]
-            guidance = self.guidance(replan, len(obs)) if self.guidance is not None else None
-            self.plans = self.planner.plan(obs, None, seeds, guidance)[:, :, self.planner.act_dim :]
+            guidance = self.guidance(t // self.span, len(obs)) if self.guidance is not None else None
+            self.plans = self.planner.plan(obs, None, seeds, guidance, self.project)[:, :, self.planner.act_dim :]
             if self.first_plans is None:
                 self.first_plans = self.plans.copy()
-            if self.record:
-                for i, plan in enumerate(self.plans):
-                    row = self.batch_start + i
-                    self.recorded[row] = np.concatenate([self.recorded[row], plan[1:]])
-        return plan_commands(self.plans[:, step + 1])
+        commanded = self.plans[:, step + 1]
+        if self.record:
+            for i, state in enumerate(commanded):
+                self._rows[self.batch_start + i].append(state.copy())
+        return plan_commands(commanded)
 
 
 def place_guidance(planner, alpha: float, first: int) -> Callable[[int, int], GuidanceBase]:
-    """Pick-and-place guidance: plan ``r`` pulls block ``r mod 4`` toward its target with scale ``alpha``."""
+    """Pick-and-place guidance: the plans of stretch ``k`` pull block ``k mod 4`` toward its target with scale
+    ``alpha``."""
 
-    def make(replan: int, n: int) -> GuidanceBase:
-        return planner.guidance(PlaceObjective([replan % N_BLOCKS] * n, first), alpha)
+    def make(stretch: int, n: int) -> GuidanceBase:
+        return planner.guidance(PlaceObjective([stretch % N_BLOCKS] * n, first), alpha)
 
     return make
+
+
+def task_controller(
+    task, planner, seed: int, guidance: Callable[[int, int], GuidanceBase | None] | None = None, record: bool = False
+) -> ReplanningController:
+    """The controller of a KUKA task's plans, as its ``planning`` settings say (every evaluation and generation)."""
+    p = task.settings.planning
+    project = resting_blocks_pinned(planner) if p.pin_resting_blocks else None
+    return ReplanningController(planner, seed, guidance, record, project, p.replan_every)

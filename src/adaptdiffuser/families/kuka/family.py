@@ -14,7 +14,7 @@ from adaptdiffuser.contract import Controller, EpisodeBatchResult, Family, TaskF
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.evaluation import RandomController, normalized_score, run_episodes, standard_error
 from adaptdiffuser.families.kuka.params import KukaTaskParams
-from adaptdiffuser.families.kuka.scene import N_BLOCKS
+from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_BLOCKS
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 
 #: pick-and-place setups: 1 = blocks scattered on the floor, 2 = blocks start in one tower (the paper's two)
@@ -77,23 +77,23 @@ class KukaFamily(Family):
         return ref
 
     def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
-        """Open-loop plans of the horizon, ``replans`` per episode."""
-        from adaptdiffuser.families.kuka.execution import ReplanningController
+        """Open-loop plans of the horizon, ``replans`` per episode (or replanned more often, per ``planning``)."""
+        from adaptdiffuser.families.kuka.execution import task_controller
 
-        return ReplanningController(planner, task.evaluate.seed)
+        return task_controller(task, planner, task.evaluate.seed)
 
     def evaluate_unseen(self, task, planner, alpha, ref, pictures, title, progress):
         """Pick-and-place (no demonstrations) in each setup of ``pick_place.setups``, guided with scale ``alpha``:
         score = blocks placed / 4 x 100, over all episodes (``score_*``) and per setup (``setup<k>_score_*``). No
         pictures."""
-        from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance
+        from adaptdiffuser.families.kuka.execution import place_guidance, task_controller
 
         p = task.settings.pick_place
         first = int(p.guide_from * planner.horizon)
         metrics: dict[str, float] = {}
         every: list[np.ndarray] = []
         for setup in p.setups:
-            controller = ReplanningController(planner, p.seed, place_guidance(planner, alpha, first))
+            controller = task_controller(task, planner, p.seed, place_guidance(planner, alpha, first))
             result = run_episodes(
                 lambda setup=setup: self.make_simulator(task, "pick_place", setup),
                 controller,
@@ -137,8 +137,11 @@ class KukaFamily(Family):
         return selected_episodes(task, judgement, generator)
 
     def episode_metrics(self, result: EpisodeBatchResult) -> dict[str, float]:
+        """The share of full towers, and how many blocks the cup held at some step of an episode (mean): whether
+        the plans reach the real blocks at all."""
         full = np.asarray(result.returns) >= N_BLOCKS - 1
-        return {"full_tower_rate": float(np.mean(full))}
+        held = [int((np.asarray(e)[:, list(FLAG_COLUMNS)] > 0.5).any(axis=0).sum()) for e in result.executed]
+        return {"full_tower_rate": float(np.mean(full)), "blocks_held_mean": float(np.mean(held))}
 
     def save_picture(
         self, task: TaskParams, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None

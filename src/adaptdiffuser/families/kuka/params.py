@@ -69,6 +69,19 @@ class DemonstratorSettings(BaseModel):
     rest_steps: int = Field(20, ge=0)
 
 
+class PlanningSettings(BaseModel):
+    """How plans are drawn and followed (stacking, pick-and-place and generation alike)."""
+
+    model_config = Frozen
+
+    #: keep each block's planned pose at its real one (the plan's first state) until the plan first turns that
+    #: block's suction flag on, at every denoising step: the plan cannot move a block it has not picked up
+    pin_resting_blocks: bool = False
+    #: plan again after this many executed steps (null: after horizon - 1, the whole plan); the episode keeps its
+    #: length, and pick-and-place still guides block ``k mod 4`` over the k-th stretch of horizon - 1 steps
+    replan_every: int | None = Field(None, gt=0)
+
+
 class CollectSettings(BaseModel):
     model_config = Frozen
 
@@ -119,6 +132,7 @@ class KukaTaskParams(BaseModel):
     collect: CollectSettings = Field(default_factory=CollectSettings)
     #: stacking episodes: this many open-loop plans of the horizon, each from where the last one ended
     replans: int = Field(3, gt=0)
+    planning: PlanningSettings = Field(default_factory=PlanningSettings)
     pick_place: PickPlaceSettings = Field(default_factory=PickPlaceSettings)
     selection: SelectionSettings = Field(default_factory=SelectionSettings)
 
@@ -144,6 +158,12 @@ class KukaTaskParams(BaseModel):
         """Plans that condition on the start only, at least two steps long."""
         if task.diffusion.horizon < 2:
             raise ConfigError(f"task.{task.name}.diffusion.horizon: KUKA plans need at least 2 steps")
+        every = self.planning.replan_every
+        if every is not None and every > task.diffusion.horizon - 1:
+            raise ConfigError(
+                f"task.{task.name}.planning.replan_every: {every} steps is more than a plan holds "
+                f"(horizon - 1 = {task.diffusion.horizon - 1})"
+            )
 
 
 TASK_PARAMS = KukaTaskParams

@@ -1,0 +1,140 @@
+"""KUKA planning options with the real planner (a tiny untrained model, DDIM) and the real PyBullet scene: resting
+blocks pinned to their real poses until the plan picks them up, and replanning more often than once per plan."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from adaptdiffuser.checkpoint import make_bundle
+from adaptdiffuser.config import ConfigError, DiffusionParams, ModelParams, deep_merge, params_from_dict
+from adaptdiffuser.data.normalizer import MinMaxNormalizer
+from adaptdiffuser.diffusion.samplers import DDIMSampler
+from adaptdiffuser.evaluation import run_episodes
+from adaptdiffuser.families.kuka.execution import ReplanningController, resting_blocks_pinned
+from adaptdiffuser.families.kuka.params import KukaTaskParams
+from adaptdiffuser.families.kuka.scene import BLOCK_DIMS, FLAG_COLUMNS, N_BLOCKS, N_JOINTS, OBS_DIM
+from adaptdiffuser.families.kuka.simulator import KukaSimulator
+from adaptdiffuser.planning import Planner
+
+HORIZON = 16
+
+
+def pose_columns(block: int) -> list[int]:
+    """A block's xyz and quaternion columns."""
+    start = N_JOINTS + block * BLOCK_DIMS
+    return list(range(start, start + 7))
+
+
+class RecordingPlanner(Planner):
+    """The real planner, keeping the starts it was asked to plan from."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.starts: list[np.ndarray] = []
+
+    def plan(self, starts, *args, **kwargs) -> np.ndarray:
+        self.starts.append(np.array(starts))
+        return super().plan(starts, *args, **kwargs)
+
+
+def tiny_planner(flag_high: float = 1.0) -> RecordingPlanner:
+    """A tiny untrained KUKA model (states only) whose flags span [0, ``flag_high``] in raw units: its plans move
+    the blocks at random, which is what pinning fixes."""
+    torch.manual_seed(0)
+    low, high = np.full(OBS_DIM, -1.0), np.full(OBS_DIM, 1.0)
+    low[list(FLAG_COLUMNS)], high[list(FLAG_COLUMNS)] = 0.0, flag_high
+    bundle = make_bundle(
+        ModelParams(dim=8, dim_mults=[1, 2]), DiffusionParams(horizon=HORIZON, n_steps=8), OBS_DIM, 0,
+        MinMaxNormalizer(low, high), conditioning="start",
+    )  # fmt: skip
+    return RecordingPlanner(bundle, DDIMSampler(4), torch.device("cpu"))
+
+
+@pytest.fixture(scope="module")
+def planner() -> RecordingPlanner:
+    return tiny_planner()
+
+
+def test_resting_blocks_keep_their_first_pose_until_their_flag_first_turns_on(planner: RecordingPlanner) -> None:
+    x = torch.rand(2, HORIZON, OBS_DIM) * 2 - 1
+    flags = [N_JOINTS + b * BLOCK_DIMS + 7 for b in range(N_BLOCKS)]
+    x[:, :, flags] = -1.0  # 0 in raw units: off
+    x[0, 3:, flags[0]] = 1.0  # block 0 picked at step 3
+    x[0, 0:, flags[2]] = 0.8  # block 2 held from the start
+    x[0, 5:7, flags[3]] = 0.5  # block 3 held over steps 5-6, then let go
+    x[1, 9:, flags[1]] = 0.1  # just above 0.5 in raw units
+    y = resting_blocks_pinned(planner)(x)
+
+    first_on = {(0, 0): 3, (0, 1): HORIZON, (0, 2): 0, (0, 3): 5, (1, 0): HORIZON, (1, 1): 9}
+    first_on |= {(1, 2): HORIZON, (1, 3): HORIZON}
+    for (row, block), step in first_on.items():
+        cols = pose_columns(block)
+        assert torch.equal(y[row, :step, cols], x[row, :1, cols].expand(step, -1)), (row, block)
+        assert torch.equal(y[row, step:, cols], x[row, step:, cols]), (row, block)
+    others = [c for c in range(OBS_DIM) if all(c not in pose_columns(b) for b in range(N_BLOCKS))]
+    assert torch.equal(y[:, :, others], x[:, :, others])  # joints and flags untouched
+
+
+@pytest.mark.parametrize("flag_high", [1.0, 0.5])
+def test_sampled_plans_leave_resting_blocks_where_they_are(flag_high: float) -> None:
+    """With flags up to 1 the untrained model turns some on early; up to 0.5, never: every block rests throughout."""
+    planner = tiny_planner(flag_high)
+    sim = KukaSimulator(KukaTaskParams())
+    start = sim.reset(np.random.default_rng(5))
+    sim.close()
+    starts = np.stack([start, start])
+    free = planner.plan(starts, None, [1, 2])
+    pinned = planner.plan(starts, None, [1, 2], project=resting_blocks_pinned(planner))
+    assert np.allclose(free[:, 0], starts) and np.allclose(pinned[:, 0], starts)
+    moved, pinned_steps = 0, 0
+    for plans, is_pinned in ((free, False), (pinned, True)):
+        for row in range(2):
+            on = plans[row][:, list(FLAG_COLUMNS)] > 0.5
+            for block in range(N_BLOCKS):
+                step = int(np.argmax(on[:, block])) if on[:, block].any() else HORIZON
+                cols = pose_columns(block)
+                same = np.allclose(plans[row][:step][:, cols], starts[row, cols], atol=1e-5)
+                if is_pinned:
+                    assert same, (row, block, step)
+                    pinned_steps += step
+                moved += not same
+    assert pinned_steps > 0
+    if flag_high == 0.5:  # no flag on: without pinning the untrained model moves the resting blocks
+        assert pinned_steps == 2 * N_BLOCKS * HORIZON and moved > 0
+
+
+def test_replanning_every_k_steps_plans_from_the_real_state_and_records_what_it_commanded(
+    planner: RecordingPlanner,
+) -> None:
+    every, steps = 5, 2 * (HORIZON - 1)
+    controller = ReplanningController(planner, seed=3, record=True, replan_every=every)
+    planner.starts.clear()
+    result = run_episodes(
+        lambda: KukaSimulator(KukaTaskParams(), episode_steps=steps), controller, 2, 9, 2, progress=False
+    )
+    assert len(planner.starts) == -(-steps // every)  # a plan every 5 steps: 6 plans for 30 steps
+    executed = np.stack(result.executed)  # [episodes, steps + 1, 39]
+    for k, starts in enumerate(planner.starts):  # each plan starts from the observation at its step
+        np.testing.assert_array_equal(starts, executed[:, k * every])
+    recorded = controller.recorded
+    assert [len(r) for r in recorded] == [steps + 1, steps + 1]
+    for rows, observed in zip(recorded, executed, strict=True):
+        np.testing.assert_array_equal(rows[0], observed[0])
+    with pytest.raises(ValueError, match="replan_every must be in"):
+        ReplanningController(planner, seed=3, replan_every=HORIZON)
+
+
+def test_replan_every_longer_than_a_plan_is_refused() -> None:
+    profiles = Path(__file__).resolve().parents[1] / "profiles"
+    raw = deep_merge(*(yaml.safe_load((profiles / name).read_text()) for name in ("quick.yaml", "quick-kuka.yaml")))
+    horizon = raw["task"]["kuka-stacking"]["diffusion"]["horizon"]
+    raw["task"]["kuka-stacking"]["planning"] = {"replan_every": horizon - 1}
+    params_from_dict(raw)  # a whole plan: accepted
+    raw["task"]["kuka-stacking"]["planning"] = {"replan_every": horizon}
+    with pytest.raises(ConfigError, match="planning.replan_every"):
+        params_from_dict(raw)
