@@ -1,0 +1,98 @@
+"""KUKA stacking (and, with ``--pick-place``, pick-and-place) of one trained planner under several ways of planning
+and executing, side by side on the same validation episodes (printed and written, never asserted): which of them
+keeps the plans consistent with the real blocks.
+
+Each variant sets dotted keys of the task (``task.kuka-stacking.<key>``); the default variants are the profile as it
+is, resting blocks pinned to their real poses until the plan picks them up (``planning.pin_resting_blocks``),
+replanning every 32 or 16 steps (``planning.replan_every``), both together, and the reference's suction, which
+takes a block at any distance (``control.suction_reach`` 10 m; the reference attaches whatever block the plan's
+flag names, where it is, see docs/kuka.md). Per variant: the stacking score (mean +- standard error over episodes),
+the blocks the cup held at some step of an episode (mean), the share of full towers and the CPU seconds.
+
+    python benchmarks/compare_kuka_planning.py WORKSPACE [--seed 7] [--episodes 20] [--phase 0] [--training-seed 0]
+        [--variants FILE.yaml] [--pick-place] [--out FILE.json]
+
+WORKSPACE is a pipeline folder holding a trained KUKA model (after `dvc repro` of the quick-kuka profile). A
+variants file maps names to dotted settings, e.g. ``pinned: {planning.pin_resting_blocks: true}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+from trained_workspace import add_workspace_args, load_trained
+
+from adaptdiffuser.config import set_dotted
+from adaptdiffuser.diffusion.samplers import make_sampler
+from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.io import atomic_path
+from adaptdiffuser.planning import Planner
+
+VARIANTS: dict[str, dict[str, Any]] = {
+    "as profiled": {},
+    "pinned": {"planning.pin_resting_blocks": True},
+    "replan every 32": {"planning.replan_every": 32},
+    "replan every 16": {"planning.replan_every": 16},
+    "pinned, replan every 32": {"planning.pin_resting_blocks": True, "planning.replan_every": 32},
+    "suction at any distance": {"control.suction_reach": 10.0},
+    "pinned, suction at any distance": {"planning.pin_resting_blocks": True, "control.suction_reach": 10.0},
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_workspace_args(parser, task="kuka-stacking", episodes=20)
+    parser.add_argument("--variants", type=Path, help="YAML: variant name -> {dotted task key: value}")
+    parser.add_argument("--pick-place", action="store_true", help="also pick-and-place (validation seed, per setup)")
+    parser.add_argument("--out", type=Path, help="write the figures here as JSON")
+    args = parser.parse_args()
+    variants = yaml.safe_load(args.variants.read_text()) if args.variants else VARIANTS
+    ws = load_trained(args)
+    if args.pick_place:  # the pick-and-place episodes on the same validation seed and count
+        for key, value in (("seed", args.seed), ("episodes", args.episodes)):
+            ws.raw = set_dotted(ws.raw, f"task.{ws.name}.pick_place.{key}", value)
+    family = get_family("kuka")
+    ref = ws.reference()
+    print(
+        f"{ws.name} phase {args.phase} (training seed {args.training_seed}): {args.episodes} stacking episodes from "
+        f"seed {args.seed}, torch threads {torch.get_num_threads()}",
+        flush=True,
+    )
+    rows = []
+    for name, settings in variants.items():
+        task = ws.task_with(settings)
+        planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
+        cpu = time.process_time()
+        result = run_episodes(
+            lambda task=task: family.make_simulator(task),
+            family.controller(task, planner, ws.files(), ws.device),
+            task.evaluate.episodes,
+            task.evaluate.seed,
+            task.evaluate.batch_size,
+            progress=False,
+        )
+        scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
+        row = {"variant": name, "settings": settings, "score_mean": float(scores.mean()),
+               "score_stderr": standard_error(scores), **family.episode_metrics(result),
+               "cpu_s": round(time.process_time() - cpu, 1)}  # fmt: skip
+        if args.pick_place:
+            cpu = time.process_time()
+            unseen = family.evaluate_unseen(task, planner, ws.raw["alpha"], ref, 0, name, False)
+            row["pick_place"] = unseen | {"cpu_s": round(time.process_time() - cpu, 1)}
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+        if args.out is not None:
+            with atomic_path(args.out) as tmp:
+                tmp.write_text(json.dumps({"episodes": args.episodes, "seed": args.seed, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
