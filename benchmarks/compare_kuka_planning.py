@@ -4,7 +4,8 @@ keeps the plans consistent with the real blocks.
 
 Each variant sets dotted keys of the task (``task.kuka-stacking.<key>``); the default variants are the profile as it
 is, resting blocks pinned to their real poses until the plan picks them up (``planning.pin_resting_blocks``),
-replanning every 32 or 16 steps (``planning.replan_every``), both together, and the reference's suction, which
+replanning every 32 or 16 steps (``planning.replan_every``), both together, pinned with the full DDPM chain
+(inpainting has every step to pull the arm to the blocks), and the reference's suction, which
 takes a block at any distance (``control.suction_reach`` 10 m; the reference attaches whatever block the plan's
 flag names, where it is, see docs/kuka.md). Per variant: the stacking score (mean +- standard error over episodes),
 the blocks the cup held at some step of an episode (mean), the share of full towers and the CPU seconds.
@@ -42,6 +43,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "replan every 32": {"planning.replan_every": 32},
     "replan every 16": {"planning.replan_every": 16},
     "pinned, replan every 32": {"planning.pin_resting_blocks": True, "planning.replan_every": 32},
+    "pinned, DDPM (every diffusion step)": {"planning.pin_resting_blocks": True, "planner.sampler": "ddpm"},
     "suction at any distance": {"control.suction_reach": 10.0},
     "pinned, suction at any distance": {"planning.pin_resting_blocks": True, "control.suction_reach": 10.0},
 }
