@@ -93,7 +93,9 @@ def main() -> None:
     out = args.out or root / f"learning_curve-{variant}-seed{args.training_seed}.jsonl"
     points = [json.loads(line) for line in out.read_text().splitlines()] if out.exists() else []
     done = {point["step"] for point in points}
+    resume = root / "models" / ".resume" / f"learning-curve-{variant}-seed{args.training_seed}.pt"
     if args.steps in done:
+        resume.unlink(missing_ok=True)  # a curve killed after its last point and before removing its state
         print(f"{out} already holds every point up to {args.steps} steps")
         return
 
@@ -101,7 +103,6 @@ def main() -> None:
     cfg = dataclasses.replace(pretrain_config(task, args.training_seed), steps=args.steps, checkpoint_every=args.every)
     bundle, dataset = phase0_model(task, traj, cfg, {"expert": expert}, args.training_seed)
     run_id = fingerprint(task.section("model"), task.section("diffusion"), dataclasses.asdict(cfg), expert)
-    resume = root / "models" / ".resume" / f"learning-curve-{variant}-seed{args.training_seed}.pt"
     resume.parent.mkdir(parents=True, exist_ok=True)
     files = TaskFiles(root, task.name, None, args.training_seed)
     value_fields: dict[str, float] = {}

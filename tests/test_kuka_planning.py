@@ -11,13 +11,27 @@ import torch
 import yaml
 
 from adaptdiffuser.checkpoint import make_bundle
-from adaptdiffuser.config import ConfigError, DiffusionParams, ModelParams, deep_merge, params_from_dict
+from adaptdiffuser.config import (
+    ConfigError,
+    DiffusionParams,
+    ModelParams,
+    deep_merge,
+    params_from_dict,
+    set_dotted,
+)
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.families.kuka.execution import ReplanningController, resting_blocks_pinned
+from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance, resting_blocks_pinned
 from adaptdiffuser.families.kuka.params import KukaTaskParams
-from adaptdiffuser.families.kuka.scene import BLOCK_DIMS, FLAG_COLUMNS, N_BLOCKS, N_JOINTS, OBS_DIM
+from adaptdiffuser.families.kuka.scene import (
+    BLOCK_DIMS,
+    FLAG_COLUMNS,
+    N_BLOCKS,
+    N_JOINTS,
+    OBS_DIM,
+    block_position_columns,
+)
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 from adaptdiffuser.planning import Planner
 
@@ -31,15 +45,23 @@ def pose_columns(block: int) -> list[int]:
 
 
 class RecordingPlanner(Planner):
-    """The real planner, keeping the starts it was asked to plan from."""
+    """The real planner, keeping the starts it was asked to plan from, the plans it made and its projections."""
 
     def __init__(self, *args, **kwargs) -> None:
         super().__init__(*args, **kwargs)
-        self.starts: list[np.ndarray] = []
+        self.clear()
 
-    def plan(self, starts, *args, **kwargs) -> np.ndarray:
+    def clear(self) -> None:
+        self.starts: list[np.ndarray] = []
+        self.plans: list[np.ndarray] = []
+        self.projections: list = []
+
+    def plan(self, starts, goals, seeds, guidance=None, project=None) -> np.ndarray:
+        plans = super().plan(starts, goals, seeds, guidance, project)
         self.starts.append(np.array(starts))
-        return super().plan(starts, *args, **kwargs)
+        self.plans.append(plans)
+        self.projections.append(project)
+        return plans
 
 
 def tiny_planner(flag_high: float = 1.0) -> RecordingPlanner:
@@ -111,30 +133,78 @@ def test_sampled_plans_leave_resting_blocks_where_they_are(flag_high: float) -> 
 def test_replanning_every_k_steps_plans_from_the_real_state_and_records_what_it_commanded(
     planner: RecordingPlanner,
 ) -> None:
-    every, steps = 5, 2 * (HORIZON - 1)
-    controller = ReplanningController(planner, seed=3, record=True, replan_every=every)
-    planner.starts.clear()
+    every, span = 5, HORIZON - 1
+    steps = 2 * span
+    asked = []
+
+    def guidance(stretch: int, offset: int, n: int) -> None:
+        asked.append((stretch, offset, n))
+
+    controller = ReplanningController(planner, seed=3, guidance=guidance, record=True, replan_every=every)
+    planner.clear()
     result = run_episodes(
         lambda: KukaSimulator(KukaTaskParams(), episode_steps=steps), controller, 2, 9, 2, progress=False
     )
-    assert len(planner.starts) == -(-steps // every)  # a plan every 5 steps: 6 plans for 30 steps
+    assert len(planner.starts) == steps // every  # a plan every 5 steps: 6 plans for 30 steps
+    assert asked == [(0, 0, 2), (0, 5, 2), (0, 10, 2), (1, 0, 2), (1, 5, 2), (1, 10, 2)]  # stretches of 15 steps
     executed = np.stack(result.executed)  # [episodes, steps + 1, 39]
-    for k, starts in enumerate(planner.starts):  # each plan starts from the observation at its step
-        np.testing.assert_array_equal(starts, executed[:, k * every])
-    recorded = controller.recorded
-    assert [len(r) for r in recorded] == [steps + 1, steps + 1]
-    for rows, observed in zip(recorded, executed, strict=True):
-        np.testing.assert_array_equal(rows[0], observed[0])
+    recorded = np.stack(controller.recorded)
+    assert recorded.shape == executed.shape
+    np.testing.assert_array_equal(recorded[:, 0], executed[:, 0])
+    for k, (starts, plans) in enumerate(zip(planner.starts, planner.plans, strict=True)):
+        np.testing.assert_array_equal(starts, executed[:, k * every])  # each plan starts from the observed state
+        # step k * every + j was commanded plan k's state j + 1
+        np.testing.assert_array_equal(recorded[:, k * every + 1 : (k + 1) * every + 1], plans[:, 1 : every + 1])
     with pytest.raises(ValueError, match="replan_every must be in"):
         ReplanningController(planner, seed=3, replan_every=HORIZON)
 
 
-def test_replan_every_longer_than_a_plan_is_refused() -> None:
+def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(planner: RecordingPlanner) -> None:
+    """The family's stacking controller and its pick-and-place evaluation both follow ``planning``."""
+    from adaptdiffuser.family_registry import get_family
+
+    task = params_from_dict(
+        kuka_raw(
+            {
+                "diffusion.horizon": HORIZON,
+                "planning": {"pin_resting_blocks": True, "replan_every": 5},
+                "pick_place": {"setups": [1], "episodes": 1, "batch_size": 1},
+            }
+        )  # fmt: skip
+    ).resolve("kuka-stacking")
+    family = get_family("kuka")
+    controller = family.controller(task, planner, None, planner.device)
+    assert controller.every == 5 and controller.project is not None
+    planner.clear()
+    family.evaluate_unseen(task, planner, 1.0, {}, 0, "", False)
+    plans_per_episode = task.settings.pick_place.replans * (HORIZON - 1) // 5
+    assert len(planner.plans) == plans_per_episode and all(p is not None for p in planner.projections)
+
+
+def kuka_raw(task_settings: dict) -> dict:
+    """The quick-kuka profile's raw params, with these ``task.kuka-stacking`` keys (dotted or nested) set."""
     profiles = Path(__file__).resolve().parents[1] / "profiles"
     raw = deep_merge(*(yaml.safe_load((profiles / name).read_text()) for name in ("quick.yaml", "quick-kuka.yaml")))
-    horizon = raw["task"]["kuka-stacking"]["diffusion"]["horizon"]
-    raw["task"]["kuka-stacking"]["planning"] = {"replan_every": horizon - 1}
-    params_from_dict(raw)  # a whole plan: accepted
-    raw["task"]["kuka-stacking"]["planning"] = {"replan_every": horizon}
+    for key, value in task_settings.items():
+        raw = set_dotted(raw, f"task.kuka-stacking.{key}", value)
+    return raw
+
+
+def test_replan_every_longer_than_a_plan_is_refused() -> None:
+    horizon = kuka_raw({})["task"]["kuka-stacking"]["diffusion"]["horizon"]
+    params_from_dict(kuka_raw({"planning.replan_every": horizon - 1}))  # a whole plan: accepted
     with pytest.raises(ConfigError, match="planning.replan_every"):
-        params_from_dict(raw)
+        params_from_dict(kuka_raw({"planning.replan_every": horizon}))
+
+
+def test_pick_and_place_guidance_follows_the_stretch_not_the_plan(planner: RecordingPlanner) -> None:
+    """A plan drawn part-way into a stretch guides that stretch's block over the stretch's guided steps."""
+    make = place_guidance(planner, 2.0, first=8)
+    whole, late, past = make(1, 0, 3), make(1, 5, 3), make(6, 12, 3)
+    assert whole.objective.first == 8 and late.objective.first == 3 and past.objective.first == 0
+    assert whole.alpha == 2.0
+    columns = [block_position_columns(b).start for b in (1, 1, 1)]
+    assert (
+        whole.objective.columns.tolist() == columns
+        and past.objective.columns.tolist() == [block_position_columns(2).start] * 3
+    )

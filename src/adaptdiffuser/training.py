@@ -135,7 +135,8 @@ def train(
     step's resume state is written (a run killed inside it redoes the step): a learning curve evaluates the EMA
     there (it must not touch the raw weights). The resume state is written at the end too, so that a stage killed
     after this training (on a later seed, say) finds it finished instead of training it again; the caller removes
-    it once everything it trains is saved. Returns the
+    it once everything it trains is saved. Resumed from a finished state, nothing is trained and neither
+    ``on_log`` nor ``on_checkpoint`` is called. Returns the
     logged ``(step, loss)`` pairs of the whole run (including those before a resume).
     """
     model, ema = bundle.diffusion.to(device), bundle.ema.to(device)

@@ -18,7 +18,7 @@ from adaptdiffuser.io import atomic_dir
 from adaptdiffuser.layout import model_dir, phase_models_dir, phase_name, resume_path, selected_path
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed, training_seed
-from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.stages.common import code_digest, file_digest
 from adaptdiffuser.stages.training_data import expert_training_data
 from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run
 from adaptdiffuser.training import carried_optimizer, fingerprint, train
@@ -88,10 +88,11 @@ def finetune_seed(
     logged = {
         "finetune": asdict(cfg.finetune) | {"control": control},
         "train": asdict(train_cfg),
-        "model": {"path": str(source), "phase": cfg.previous},
+        "model": {"path": str(source), "phase": cfg.previous, "sha256": file_digest(root / source / "model.pt")},
         "data": {"expert": expert_info, "synthetic": synthetic_info},
         "compile": {"training": params.compile.training},
         "seed": seed,
+        "code": code_digest(root, task.name),
     }
     stage = "control" if control else "finetune"
     with stage_run(task.name, stage, phase, logged, root, seed=seed):

@@ -16,6 +16,7 @@ from adaptdiffuser.data.windows import WindowDataset, joint_array
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir, phase_models_dir, resume_path
 from adaptdiffuser.plots import save_loss_curve
+from adaptdiffuser.stages.common import code_digest
 from adaptdiffuser.stages.training_data import expert_training_data, pretrain_config
 from adaptdiffuser.stages.value import run_value
 from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run
@@ -76,6 +77,7 @@ def pretrain_seed(
         "data": {"expert": expert},
         "compile": {"training": params.compile.training},
         "seed": seed,
+        "code": code_digest(root, task.name),
     }
     with stage_run(task.name, "pretrain", 0, logged, root, seed=seed):
         log_dataset(root / expert["path"], expert["sha256"], "training", expert["path"])

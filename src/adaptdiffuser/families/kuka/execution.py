@@ -4,6 +4,7 @@ pick-and-place guidance."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -14,6 +15,10 @@ from adaptdiffuser.diffusion.guidance import GuidanceBase, Objective
 from adaptdiffuser.families.kuka.scene import BLOCK_DIMS, FLAG_COLUMNS, N_BLOCKS, N_JOINTS, block_position_columns
 from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS
 from adaptdiffuser.seeding import derive_seed
+
+if TYPE_CHECKING:
+    from adaptdiffuser.config import TaskParams
+    from adaptdiffuser.planning import Planner
 
 
 def plan_commands(plan_states: np.ndarray) -> np.ndarray:
@@ -38,7 +43,7 @@ class PlaceObjective(Objective):
         return -torch.sqrt((delta**2).sum(-1) + 1e-12).sum(-1)
 
 
-def resting_blocks_pinned(planner) -> Projection:
+def resting_blocks_pinned(planner: Planner) -> Projection:
     """The plan's blocks rest where they really are until the plan picks them up: for each block, every planned step
     before the block's suction flag first turns on (> 0.5) gets the block's pose (xyz and quaternion) of the plan's
     first step, the real one (inpainted). Works on ``planner``'s normalized trajectories."""
@@ -46,16 +51,16 @@ def resting_blocks_pinned(planner) -> Projection:
     flags = [act + c for c in FLAG_COLUMNS]
     half = np.zeros((1, act + N_JOINTS + N_BLOCKS * BLOCK_DIMS))
     half[0, flags] = 0.5
-    threshold = torch.as_tensor(normalizer.normalize(half)[0, flags], dtype=planner.dtype, device=planner.device)
-    poses = torch.tensor([[act + N_JOINTS + b * BLOCK_DIMS + k for k in range(7)] for b in range(N_BLOCKS)])
-    flag_index = torch.tensor(flags)
+    device = planner.device
+    threshold = torch.as_tensor(normalizer.normalize(half)[0, flags], dtype=planner.dtype, device=device)
+    poses = [torch.arange(7, device=device) + act + N_JOINTS + b * BLOCK_DIMS for b in range(N_BLOCKS)]
+    flag_index = torch.tensor(flags, device=device)
 
     def project(x: torch.Tensor) -> torch.Tensor:
-        on = x[:, :, flag_index.to(x.device)] > threshold  # [batch, horizon, blocks]
+        on = x[:, :, flag_index] > threshold  # [batch, horizon, blocks]
         resting = torch.cummax(on.to(torch.int8), dim=1).values == 0  # before the flag's first step on
         x = x.clone()
-        for b in range(N_BLOCKS):
-            cols = poses[b].to(x.device)
+        for b, cols in enumerate(poses):
             x[:, :, cols] = torch.where(resting[:, :, b : b + 1], x[:, :1, cols], x[:, :, cols])
         return x
 
@@ -65,9 +70,9 @@ def resting_blocks_pinned(planner) -> Projection:
 class ReplanningController(Controller):
     """Plans ``horizon`` states from the current observation and executes them open loop, one planned state per
     step; replans every ``replan_every`` steps (default ``horizon - 1``, the whole plan, so ``replans`` plans fill an
-    episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, n)`` gives the guidance of
-    the ``k``-th stretch of ``horizon - 1`` steps for ``n`` episodes (or None), for every plan drawn in it; each plan
-    is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given. With ``record``,
+    episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, o, n)`` gives the guidance
+    of a plan drawn ``o`` steps into the ``k``-th stretch of ``horizon - 1`` steps, for ``n`` episodes (or None);
+    each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given. With ``record``,
     :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the state each step was
     commanded to reach), episodes in the order they ran."""
 
@@ -75,7 +80,7 @@ class ReplanningController(Controller):
         self,
         planner,
         seed: int,
-        guidance: Callable[[int, int], GuidanceBase | None] | None = None,
+        guidance: Callable[[int, int, int], GuidanceBase | None] | None = None,
         record: bool = False,
         project: Projection | None = None,
         replan_every: int | None = None,
@@ -93,6 +98,7 @@ class ReplanningController(Controller):
 
     @property
     def recorded(self) -> list[np.ndarray]:
+        """Each recorded episode's start and commanded states ``[steps + 1, 39]``, in the order they ran."""
         return [np.stack(rows) for rows in self._rows]
 
     def begin(self, envs, obs, episodes):
@@ -107,7 +113,8 @@ class ReplanningController(Controller):
         step, replan = t % self.every, t // self.every
         if step == 0:
             seeds = [derive_seed(self.seed, e, replan) for e in self.episodes]
-            guidance = self.guidance(t // self.span, len(obs)) if self.guidance is not None else None
+            stretch, offset = divmod(t, self.span)
+            guidance = self.guidance(stretch, offset, len(obs)) if self.guidance is not None else None
             self.plans = self.planner.plan(obs, None, seeds, guidance, self.project)[:, :, self.planner.act_dim :]
             if self.first_plans is None:
                 self.first_plans = self.plans.copy()
@@ -118,18 +125,23 @@ class ReplanningController(Controller):
         return plan_commands(commanded)
 
 
-def place_guidance(planner, alpha: float, first: int) -> Callable[[int, int], GuidanceBase]:
+def place_guidance(planner: Planner, alpha: float, first: int) -> Callable[[int, int, int], GuidanceBase]:
     """Pick-and-place guidance: the plans of stretch ``k`` pull block ``k mod 4`` toward its target with scale
-    ``alpha``."""
+    ``alpha`` over the stretch's steps from ``first`` on (a plan drawn ``o`` steps into the stretch: its steps from
+    ``first - o``)."""
 
-    def make(stretch: int, n: int) -> GuidanceBase:
-        return planner.guidance(PlaceObjective([stretch % N_BLOCKS] * n, first), alpha)
+    def make(stretch: int, offset: int, n: int) -> GuidanceBase:
+        return planner.guidance(PlaceObjective([stretch % N_BLOCKS] * n, max(0, first - offset)), alpha)
 
     return make
 
 
 def task_controller(
-    task, planner, seed: int, guidance: Callable[[int, int], GuidanceBase | None] | None = None, record: bool = False
+    task: TaskParams,
+    planner: Planner,
+    seed: int,
+    guidance: Callable[[int, int, int], GuidanceBase | None] | None = None,
+    record: bool = False,
 ) -> ReplanningController:
     """The controller of a KUKA task's plans, as its ``planning`` settings say (every evaluation and generation)."""
     p = task.settings.planning
