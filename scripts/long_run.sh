@@ -112,7 +112,20 @@ case $action in
       left=$(dvc status --json | python -c 'import json, sys; print(len(json.load(sys.stdin)))')
       echo "not running: $((total - left)) of $total stages done, $left left (continue: bash scripts/long_run.sh resume $folder)"
     fi
-    ls models/.resume/ 2>/dev/null | sed 's/^/resume state: /' || true
+    # each training's resume state and the step it holds (a finished seed's state stays until its stage ends)
+    python - <<'EOF' || true
+from pathlib import Path
+
+import torch
+
+for state in sorted(Path("models/.resume").glob("*.pt")):
+    if not state.name.startswith("."):  # not an atomic write's temporary file
+        try:
+            step = torch.load(state, map_location="cpu", weights_only=False)["step"]
+        except Exception as err:  # a state being replaced, or from another torch: say so and go on
+            step = f"unreadable: {err.__class__.__name__}"
+        print(f"resume state: {state.name} (step {step})")
+EOF
     # progress bars rewrite their line with carriage returns: show each bar's latest state only
     tail -c 20000 long_run.log 2>/dev/null | sed 's/.*\r//' | tail -n 5 | sed 's/^/log: /' || true
     ;;

@@ -51,7 +51,9 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
         time.sleep(0.1)
 
     status = run_tool(["bash", SCRIPT, "status", str(folder)], tmp_path)
-    assert f"commit: {head[:7]}" in status and "not running" in status and "resume state:" in status
+    assert f"commit: {head[:7]}" in status and "not running" in status
+    assert f"resume state: {MAZE}-phase0-seed0.pt (step 600)" in status  # the first seed, finished
+    assert f"resume state: {MAZE}-phase0-seed1.pt (step " in status
     refused = subprocess.run(["bash", SCRIPT, "start", str(folder)], capture_output=True, text=True)
     assert refused.returncode == 2 and "exists: continue it with" in refused.stderr
 
