@@ -8,7 +8,8 @@ replanning every 32 or 16 steps (``planning.replan_every``), both together, pinn
 (inpainting has every step to pull the arm to the blocks), and the reference's suction, which
 takes a block at any distance (``control.suction_reach`` 10 m; the reference attaches whatever block the plan's
 flag names, where it is, see docs/kuka.md). Per variant: the stacking score (mean +- standard error over episodes),
-the blocks the cup held at some step of an episode (mean), the share of full towers and the CPU seconds.
+the blocks the cup held at some step of an episode (mean), the share of full towers, the CPU seconds, and the
+gain over the first variant paired per episode (same seeds, same starts).
 
     python benchmarks/compare_kuka_planning.py WORKSPACE [--seed 7] [--episodes 20] [--phase 0] [--training-seed 0]
         [--variants FILE.yaml] [--pick-place] [--out FILE.json]
@@ -32,7 +33,7 @@ from trained_workspace import add_workspace_args, load_trained
 
 from adaptdiffuser.config import set_dotted
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
+from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, standard_error
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import atomic_path
 from adaptdiffuser.planning import Planner
@@ -68,7 +69,7 @@ def main() -> None:
         f"seed {args.seed}, torch threads {torch.get_num_threads()}",
         flush=True,
     )
-    rows = []
+    rows, first = [], None
     for name, settings in variants.items():
         task = ws.task_with(settings)
         planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
@@ -85,6 +86,8 @@ def main() -> None:
         row = {"variant": name, "settings": settings, "score_mean": float(scores.mean()),
                "score_stderr": standard_error(scores), **family.episode_metrics(result),
                "cpu_s": round(time.process_time() - cpu, 1)}  # fmt: skip
+        first = scores if first is None else first
+        row["over_first"] = paired_gain(scores, first)
         if args.pick_place:
             cpu = time.process_time()
             unseen = family.evaluate_unseen(task, planner, ws.raw["alpha"], ref, 0, name, False)
