@@ -7,8 +7,6 @@ from pathlib import Path
 
 import torch
 
-from adaptdiffuser.tooling.code_fingerprint import fingerprint_path
-
 
 def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str, phase: int, root: Path) -> dict:
     """A stage's metrics of every training seed as one file (``root / path``; see
@@ -41,14 +39,6 @@ def file_digest(path: Path) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
-
-
-def code_digest(root: Path, task: str) -> str | None:
-    """SHA-256 of the task's code fingerprint (``code/<task>.json``, written by its ``code`` stage), or None where
-    there is none (a library call outside the pipeline): training tells its own resume states by it, so that a
-    state written by other code is not taken up."""
-    path = root / fingerprint_path(task)
-    return file_digest(path) if path.is_file() else None
 
 
 def phase_entries(task_summary: dict) -> list[tuple[int, dict]]:

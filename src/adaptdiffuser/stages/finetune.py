@@ -18,8 +18,8 @@ from adaptdiffuser.io import atomic_dir
 from adaptdiffuser.layout import model_dir, phase_models_dir, phase_name, resume_path, selected_path
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed, training_seed
-from adaptdiffuser.stages.common import code_digest, file_digest
-from adaptdiffuser.stages.training_data import expert_training_data
+from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.stages.training_data import code_digest, expert_training_data
 from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run
 from adaptdiffuser.training import carried_optimizer, fingerprint, train
 

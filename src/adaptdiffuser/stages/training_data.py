@@ -1,5 +1,5 @@
-"""What every training stage of a task starts from: the expert episodes a training seed trains on, and the
-pretraining settings of that seed (fine-tuning and the control reuse them)."""
+"""What every training stage of a task starts from: the expert episodes a training seed trains on, the
+pretraining settings of that seed (fine-tuning and the control reuse them) and the digest of the task's code."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from adaptdiffuser.data.windows import subset_episodes
 from adaptdiffuser.layout import dataset_path
 from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.tooling.code_fingerprint import fingerprint_path
 
 
 def pretrain_config(task: TaskParams, seed: int) -> PretrainParams:
@@ -29,3 +30,11 @@ def expert_training_data(task: TaskParams, root: Path, seed: int) -> tuple[Traje
     fraction = task.pretrain.expert_fraction
     subset = subset_episodes(traj, fraction, np.random.default_rng(pretrain_config(task, seed).seed))
     return subset, {"path": str(dataset_path(task.name)), "sha256": file_digest(data_path), "fraction": fraction}
+
+
+def code_digest(root: Path, task: str) -> str | None:
+    """SHA-256 of the task's code fingerprint (``code/<task>.json``, written by its ``code`` stage), or None where
+    there is none (a library call outside the pipeline): training tells its own resume states by it, so that a
+    state written by other code is not taken up."""
+    path = root / fingerprint_path(task)
+    return file_digest(path) if path.is_file() else None
