@@ -12,7 +12,7 @@ import torch
 from adaptdiffuser.contract import Controller
 from adaptdiffuser.diffusion.conditions import Projection
 from adaptdiffuser.diffusion.guidance import GuidanceBase, Objective
-from adaptdiffuser.families.kuka.scene import BLOCK_DIMS, FLAG_COLUMNS, N_BLOCKS, N_JOINTS, block_position_columns
+from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_BLOCKS, N_JOINTS, OBS_DIM, block_position_columns
 from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS
 from adaptdiffuser.seeding import derive_seed
 
@@ -49,11 +49,12 @@ def resting_blocks_pinned(planner: Planner) -> Projection:
     first step, the real one (inpainted). Works on ``planner``'s normalized trajectories."""
     act, normalizer = planner.act_dim, planner.normalizer
     flags = [act + c for c in FLAG_COLUMNS]
-    half = np.zeros((1, act + N_JOINTS + N_BLOCKS * BLOCK_DIMS))
+    half = np.zeros((1, act + OBS_DIM))
     half[0, flags] = 0.5
     device = planner.device
     threshold = torch.as_tensor(normalizer.normalize(half)[0, flags], dtype=planner.dtype, device=device)
-    poses = [torch.arange(7, device=device) + act + N_JOINTS + b * BLOCK_DIMS for b in range(N_BLOCKS)]
+    # each block's xyz and quaternion: the 7 columns from its position's first
+    poses = [torch.arange(7, device=device) + act + block_position_columns(b).start for b in range(N_BLOCKS)]
     flag_index = torch.tensor(flags, device=device)
 
     def project(x: torch.Tensor) -> torch.Tensor:
