@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -28,16 +29,20 @@ from adaptdiffuser.layout import (
     phase_metrics_path,
     reference_path,
     results_dir,
+    resume_path,
     selected_path,
+    value_dir,
+    value_resume_path,
 )
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
 from adaptdiffuser.stages.finetune import run_finetune
 from adaptdiffuser.stages.generate import run_generate
-from adaptdiffuser.stages.pretrain import run_pretrain
+from adaptdiffuser.stages.pretrain import pretrain_seed, run_pretrain
 from adaptdiffuser.stages.reference import run_reference
 from adaptdiffuser.stages.summarize import run_summarize
+from adaptdiffuser.value_training import load_value
 
 PROFILES = Path(__file__).resolve().parents[1] / "profiles"
 
@@ -97,17 +102,29 @@ def test_locomotion_baseline_stages(tmp_path: Path, name: str, state_dim: int, t
     assert summary["dataset"] == ref["dataset"] and summary["phase_0"]["score_mean"] == metrics["score_mean"]
 
 
-def test_locomotion_evolution_phase(tmp_path: Path) -> None:
+def test_locomotion_evolution_phase(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """hopper-medium phase 1: value-guided segments from dataset states and resets, executed in the simulator from
     the same full state, selected by real reward; fine-tuned model and its equal-compute control; and phase 2's
-    paper rule on reward per step x 1000."""
+    paper rule on reward per step x 1000. Before it, a pretraining stage rerun after its seed was trained (as DVC
+    reruns a stage killed on a later seed, its outputs deleted) trains neither the model nor the value again."""
     name = "hopper-medium"
     raw = yaml.safe_load(apply_profile("smoke", PROFILES, tmp_path / "params.yaml").read_text())
     raw.update(tasks=[name], collect_tasks=[name], unseen_tasks=[], evolve=name)
     params = params_from_dict(raw)
     device = torch.device("cpu")
     run_collect(params, name, tmp_path, progress=False)
+    pretrain_seed(params, name, tmp_path, device, 0, progress=False)
+    first_value = load_value(tmp_path / value_dir(name, 0))[0].state_dict()
+    shutil.rmtree(tmp_path / model_dir(name, 0, 0))
+    capsys.readouterr()
     run_pretrain(params, name, tmp_path, device, progress=False)
+    printed = capsys.readouterr().out
+    task = params.resolve(name)
+    assert f"from step {task.pretrain.steps} ({tmp_path / resume_path(name, 0, 0)})" in printed
+    assert f"from step {task.settings.value.steps} ({tmp_path / value_resume_path(name, 0)})" in printed
+    for key, weights in load_value(tmp_path / value_dir(name, 0))[0].state_dict().items():
+        torch.testing.assert_close(weights, first_value[key], rtol=0, atol=0)
+    assert not list((tmp_path / "models" / ".resume").iterdir())  # the stage removed its states once all saved
     stats = run_generate(params, name, tmp_path, 1, device, progress=False)[0]
     g = params.phase(1).generate
     assert stats["generated"] == g.tasks and stats["from_dataset"] == g.tasks // 2

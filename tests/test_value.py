@@ -210,3 +210,57 @@ def test_value_checkpoint_round_trip_and_missing_files(tmp_path) -> None:
     (folder / "value.pt").unlink()
     with pytest.raises(FileNotFoundError, match="value.pt"):
         load_value(folder)
+
+
+class Interrupted(Exception):
+    """Stands for a process killed during value training."""
+
+
+def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
+    """Killed at step 25 with states every 10 steps, a new process (other initial weights) goes on from step 20
+    and ends with the straight run's weights and history; a finished state trains nothing; another run's state is
+    ignored."""
+    traj = _first_state_value_data(0, n=64)
+    normalizer = GaussianNormalizer.fit(joint_array(traj))
+    ds = ValueWindowDataset(traj, 8, normalizer, discount=0.99, terminal_penalty=0.0)
+    diffusion = tiny_diffusion(8)
+    settings = ValueSettings(steps=30, batch_size=8, lr=1e-3, seed=3, log_every=5, checkpoint_every=10)
+
+    def fresh(seed: int) -> ValueNetwork:
+        torch.manual_seed(seed)
+        return ValueNetwork(OBS + ACT, 8, dim=8, dim_mults=(1, 2))
+
+    straight_net = fresh(0)
+    straight = train_value(straight_net, diffusion, ds, settings, CPU, progress=False)
+    resume = tmp_path / "value-resume.pt"
+
+    def kill_at_25(step: int, loss: float) -> None:
+        if step == 25:
+            raise Interrupted
+
+    with pytest.raises(Interrupted):
+        train_value(fresh(0), diffusion, ds, settings, CPU, False, kill_at_25, resume_path=resume, run_id="a")
+    assert torch.load(resume, weights_only=False)["step"] == 20
+    logged: list[int] = []
+    resumed_net = fresh(123)
+    resumed = train_value(
+        resumed_net, diffusion, ds, settings, CPU, False, lambda s, _: logged.append(s), resume_path=resume, run_id="a"
+    )
+    assert logged == [25, 30] and resumed == straight
+    for a, b in zip(resumed_net.state_dict().values(), straight_net.state_dict().values(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert torch.load(resume, weights_only=False)["step"] == 30  # the end is kept for a stage killed later
+
+    logged.clear()
+    finished_net = fresh(7)
+    again = train_value(
+        finished_net, diffusion, ds, settings, CPU, False, lambda s, _: logged.append(s), resume_path=resume, run_id="a"
+    )
+    assert logged == [] and again == straight and not finished_net.training
+    for a, b in zip(finished_net.state_dict().values(), straight_net.state_dict().values(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+    other = train_value(
+        fresh(0), diffusion, ds, settings, CPU, False, lambda s, _: logged.append(s), resume_path=resume, run_id="b"
+    )
+    assert logged == [5, 10, 15, 20, 25, 30] and other == straight  # from scratch: the state was another run's

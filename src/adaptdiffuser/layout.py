@@ -49,6 +49,12 @@ def resume_path(task: str, phase: int, seed: int, control: bool = False) -> Path
     return Path("models") / ".resume" / f"{task}-{phase_name(phase, control)}-{seed_name(seed)}.pt"
 
 
+def value_resume_path(task: str, seed: int) -> Path:
+    """Where the training of the task's value function for a training seed keeps its resume state (removed with
+    the phase-0 models' states)."""
+    return Path("models") / ".resume" / f"{task}-{phase_name(0)}-{seed_name(seed)}-value.pt"
+
+
 def value_dir(task: str, seed: int) -> Path:
     """The task's learned value function for a training seed, beside its phase-0 model (written by pretrain)."""
     return model_dir(task, 0, seed) / "value"

@@ -48,6 +48,55 @@ def fingerprint(*parts: Any) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+def load_resume_state(path: Path | None, run_id: str, device: torch.device) -> dict[str, Any] | None:
+    """The resume state at ``path`` if there is one written by run ``run_id`` (saying so), else ``None`` (saying
+    why, when a state of another run is ignored)."""
+    if path is None or not path.exists():
+        return None
+    state = torch.load(path, map_location=device, weights_only=False)
+    if state.get("run_id") != run_id:
+        tqdm.write(f"ignoring resume state {path}: it belongs to other params or data")
+        return None
+    tqdm.write(f"resuming training from step {state['step']} ({path})")
+    return state
+
+
+def loop_state(
+    run_id: str,
+    step: int,
+    optimizer: torch.optim.Optimizer,
+    rng: np.random.Generator,
+    gen: torch.Generator,
+    history: list[tuple[int, float]],
+) -> dict[str, Any]:
+    """What a training loop needs besides its weights to go on exactly from ``step``: the optimizer, both random
+    streams and the loss history, with the run it belongs to."""
+    return {
+        "run_id": run_id,
+        "step": step,
+        "optimizer": optimizer.state_dict(),
+        "numpy_rng": rng.bit_generator.state,
+        "torch_rng": gen.get_state(),
+        "history": history,
+    }
+
+
+def restore_loop_state(
+    state: dict[str, Any], optimizer: torch.optim.Optimizer, rng: np.random.Generator, gen: torch.Generator
+) -> tuple[int, list[tuple[int, float]]]:
+    """Put a :func:`loop_state` back into ``optimizer``, ``rng`` and ``gen``; return its step and loss history."""
+    optimizer.load_state_dict(state["optimizer"])
+    rng.bit_generator.state = state["numpy_rng"]
+    gen.set_state(state["torch_rng"].cpu())
+    return state["step"], state["history"]
+
+
+def save_resume_state(path: Path, state: dict[str, Any]) -> None:
+    """Write a resume state atomically (a run killed while writing keeps the previous one)."""
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
 class LossLog:
     """Mean training loss over each ``every`` steps (and at the last step): kept in ``history``, shown on the
     progress bar and passed to ``on_log``."""
@@ -151,18 +200,11 @@ def train(
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator(device=device).manual_seed(cfg.seed)
     start, history = 0, []
-    if resume_path is not None and resume_path.exists():
-        state = torch.load(resume_path, map_location=device, weights_only=False)
-        if state.get("run_id") == run_id:
-            model.model.load_state_dict(state["model"])
-            ema.model.load_state_dict(state["ema"])
-            optimizer.load_state_dict(state["optimizer"])
-            rng.bit_generator.state = state["numpy_rng"]
-            gen.set_state(state["torch_rng"].cpu())
-            start, history = state["step"], state["history"]
-            tqdm.write(f"resuming training from step {start} ({resume_path})")
-        else:
-            tqdm.write(f"ignoring resume state {resume_path}: it belongs to other params or data")
+    state = load_resume_state(resume_path, run_id, device)
+    if state is not None:
+        model.model.load_state_dict(state["model"])
+        ema.model.load_state_dict(state["ema"])
+        start, history = restore_loop_state(state, optimizer, rng, gen)
     act_dim = model.act_dim
     conditioning = bundle.config.get("conditioning", "start_goal")
     scheduled = cfg.lr_schedule != "constant" or cfg.lr_warmup > 0  # else every step uses cfg.lr as set above
@@ -192,18 +234,8 @@ def train(
         if on_checkpoint is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
             on_checkpoint(done)
         if resume_path is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
-            state = {
-                "run_id": run_id,
-                "step": done,
-                "model": model.model.state_dict(),
-                "ema": ema.model.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "numpy_rng": rng.bit_generator.state,
-                "torch_rng": gen.get_state(),
-                "history": history,
-            }
-            with atomic_path(resume_path) as tmp:
-                torch.save(state, tmp)
+            state = loop_state(run_id, done, optimizer, rng, gen, history)
+            save_resume_state(resume_path, state | {"model": model.model.state_dict(), "ema": ema.model.state_dict()})
     model.eval()
     ema.eval()
     bundle.optimizer = optimizer_record(optimizer)

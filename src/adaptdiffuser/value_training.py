@@ -23,7 +23,14 @@ from adaptdiffuser.diffusion.conditions import apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.io import atomic_dir, read_json, write_json
 from adaptdiffuser.models.value import ValueNetwork
-from adaptdiffuser.training import LogFn, LossLog
+from adaptdiffuser.training import (
+    LogFn,
+    LossLog,
+    load_resume_state,
+    loop_state,
+    restore_loop_state,
+    save_resume_state,
+)
 
 VALUE_FILES = ("value.pt", "config.json")
 
@@ -59,19 +66,33 @@ def train_value(
     device: torch.device,
     progress: bool = True,
     on_log: LogFn | None = None,
+    resume_path: Path | None = None,
+    run_id: str = "",
 ) -> list[tuple[int, float]]:
-    """Train ``value_net`` in place (Adam) for ``settings.steps`` steps; return the logged ``(step, mean loss)``.
+    """Train ``value_net`` in place (Adam) for ``settings.steps`` steps; return the logged ``(step, mean loss)``
+    of the whole run.
 
     ``diffusion`` supplies only the noise schedule (it is moved to ``device``, not trained). Seeded by
-    ``settings.seed`` (window draws, steps and noise); the network's initial weights are the caller's.
+    ``settings.seed`` (window draws, steps and noise); the network's initial weights are the caller's. With
+    ``resume_path``, a resume state is written every ``settings.checkpoint_every`` steps and at the end, and a
+    state of the same ``run_id`` found there is gone on from (a finished one: nothing trained, nothing logged),
+    exactly as the diffusion model's :func:`~adaptdiffuser.training.train`; the caller removes it.
     """
     value_net.to(device).train()
     diffusion.to(device)
     optimizer = torch.optim.Adam(value_net.parameters(), lr=settings.lr)
     rng = np.random.default_rng(settings.seed)
     gen = torch.Generator(device=device).manual_seed(settings.seed)
-    bar = tqdm(range(settings.steps), desc="value", disable=not progress, mininterval=2.0)
-    log = LossLog(settings.log_every, settings.steps, bar, on_log)
+    start, history = 0, []
+    state = load_resume_state(resume_path, run_id, device)
+    if state is not None:
+        value_net.load_state_dict(state["model"])
+        start, history = restore_loop_state(state, optimizer, rng, gen)
+    bar = tqdm(
+        range(start, settings.steps), initial=start, total=settings.steps, desc="value", disable=not progress,
+        mininterval=2.0,
+    )  # fmt: skip
+    log = LossLog(settings.log_every, settings.steps, bar, on_log, history)
     for step in bar:
         windows, values = dataset.sample(settings.batch_size, rng)
         x0 = torch.from_numpy(windows).to(device)
@@ -81,7 +102,11 @@ def train_value(
         loss.backward()
         optimizer.step()
         log.add(loss.item())
-        log.step_done(step + 1)
+        done = step + 1
+        log.step_done(done)
+        if resume_path is not None and (done % settings.checkpoint_every == 0 or done == settings.steps):
+            state = loop_state(run_id, done, optimizer, rng, gen, log.history)
+            save_resume_state(resume_path, state | {"model": value_net.state_dict()})
     value_net.eval()
     return log.history
 

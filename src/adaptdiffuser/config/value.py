@@ -20,6 +20,8 @@ class ValueSettings(BaseModel):
     discount: float = Field(0.997, gt=0, le=1)
     terminal_penalty: float = -100.0
     log_every: int = Field(1000, gt=0)
+    #: steps between resume states (and one at the end), so that a killed value training goes on from there
+    checkpoint_every: int = Field(5000, gt=0)
     #: share of the episodes kept out of value training; the value's R^2 on their windows is the stage's metric
     #: ``value_heldout_r2`` (0: train on every episode, no R^2)
     holdout_fraction: float = Field(0.1, ge=0.0, lt=1.0)

@@ -14,7 +14,7 @@ from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import WindowDataset, joint_array
 from adaptdiffuser.family_registry import get_family
-from adaptdiffuser.layout import model_dir, phase_models_dir, resume_path
+from adaptdiffuser.layout import model_dir, phase_models_dir, resume_path, value_resume_path
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.stages.training_data import code_digest, expert_training_data, pretrain_config
 from adaptdiffuser.stages.value import run_value
@@ -31,6 +31,7 @@ def run_pretrain(params: Params, task_name: str, root: Path, device: torch.devic
         pretrain_seed(params, task_name, root, device, seed, progress)
     for seed in params.seeds:  # kept until every seed is saved: a stage killed on seed s skips the seeds before it
         (root / resume_path(task_name, 0, seed)).unlink(missing_ok=True)
+        (root / value_resume_path(task_name, seed)).unlink(missing_ok=True)
     return root / phase_models_dir(task_name, 0)
 
 

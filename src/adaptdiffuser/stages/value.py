@@ -17,13 +17,13 @@ from adaptdiffuser.config.value import ValueSettings
 from adaptdiffuser.data.returns import ValueWindowDataset
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import take_episodes
-from adaptdiffuser.layout import model_dir, value_dir
+from adaptdiffuser.layout import model_dir, value_dir, value_resume_path
 from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed, training_seed
-from adaptdiffuser.stages.training_data import expert_training_data
+from adaptdiffuser.stages.training_data import code_digest, expert_training_data
 from adaptdiffuser.tooling.mlflow_logging import stage_run
-from adaptdiffuser.training import LogFn
+from adaptdiffuser.training import LogFn, fingerprint
 from adaptdiffuser.value_training import heldout_r2, save_value, train_value
 
 #: windows of the held-out episodes the value's R^2 is measured on
@@ -49,13 +49,15 @@ def fit_value(
     device: torch.device,
     progress: bool = True,
     on_log: LogFn | None = None,
+    resume_path: Path | None = None,
+    run_id: str = "",
 ) -> tuple[ValueNetwork, dict[str, Any], list[tuple[int, float]]]:
     """Train training seed ``seed``'s value network of ``task`` on ``traj``'s windows, noised with ``bundle``'s
     diffusion schedule and scaled by its normalizer, less the held-out episodes (``value.holdout_fraction``) on
     which its R^2 is then measured. Returns the network, its fit (``episodes``, ``heldout_episodes``,
     ``training_windows``, ``parameters`` and, when episodes are held out, ``r2``, ``r2_t0``, ``windows``) and the
     logged losses. Only the bundle's schedule and normalizer are used, never its weights: the value function does
-    not depend on the diffusion model it guides."""
+    not depend on the diffusion model it guides. ``resume_path`` and ``run_id``: as :func:`train_value`'s."""
     net_settings = task.settings.value_model
     settings = value_settings(task, seed)
     traj, heldout = split_heldout(traj, settings.holdout_fraction, derive_seed(settings.seed, 1))
@@ -70,7 +72,10 @@ def fit_value(
         dim_mults=tuple(net_settings.dim_mults),
         kernel_size=task.model.kernel_size,
     )
-    history = train_value(net, bundle.diffusion, dataset, settings, device, progress=progress, on_log=on_log)
+    history = train_value(
+        net, bundle.diffusion, dataset, settings, device, progress=progress, on_log=on_log,
+        resume_path=resume_path, run_id=run_id,
+    )  # fmt: skip
     fit: dict[str, Any] = {"episodes": len(traj.episodes()), "heldout_episodes": 0, "training_windows": len(dataset),
                            "parameters": sum(p.numel() for p in net.parameters())}  # fmt: skip
     if heldout is not None:
@@ -102,11 +107,15 @@ def run_value(
         "value_model": task.settings.value_model.model_dump(),
         "data": {"expert": data},
         "seed": seed,
+        "code": code_digest(root, task.name),
     }
+    resume = root / value_resume_path(task.name, seed)
+    resume.parent.mkdir(parents=True, exist_ok=True)
     with stage_run(task.name, "value", 0, logged, root, seed=seed):
         net, fit, history = fit_value(
             task, bundle, traj, seed, device, progress,
             on_log=lambda step, loss: mlflow.log_metric("value_loss", loss, step=step),
+            resume_path=resume, run_id=fingerprint(logged, task.section("diffusion")),
         )  # fmt: skip
         mlflow.log_metrics({"windows": fit.pop("training_windows"), "parameters": fit.pop("parameters")})
         if fit["heldout_episodes"]:
