@@ -188,6 +188,55 @@ def test_unknown_profile(tmp_path: Path) -> None:
     assert not (tmp_path / "params.yaml").exists()
 
 
+def test_profiles_extend_parts_in_order(tmp_path: Path) -> None:
+    """Parts are overlaid in the order named, each after its own parts, a shared part once, the profile's keys
+    last; the header lists the files in that order; a part is not a profile."""
+    profiles = tmp_path / "profiles"
+    (profiles / "parts").mkdir(parents=True)
+    shutil.copy2(PROFILES / "quick.yaml", profiles)
+    (profiles / "parts" / "base.yaml").write_text("seeds: [0, 1]\nalpha: 1.0\n")
+    (profiles / "parts" / "a.yaml").write_text("extends: base\nalpha: 2.0\npretrain: {lr: 0.0003}\n")
+    # b extends base again: base must not be overlaid a second time, undoing a's alpha
+    (profiles / "parts" / "b.yaml").write_text("extends: [base]\npretrain: {steps: 300}\n")
+    (profiles / "mine.yaml").write_text("extends: [a, b]\npretrain: {steps: 400, log_every: 7}\n")
+    out = apply_profile("mine", profiles, tmp_path / "params.yaml")
+    params = load_params(out)
+    assert params.seeds == (0, 1) and params.alpha == 2.0
+    assert (params.pretrain.lr, params.pretrain.steps, params.pretrain.log_every) == (0.0003, 400, 7)
+    assert params.pretrain.batch_size == 32  # the quick profile's, untouched by any layer
+    header = out.read_text().splitlines()[0]
+    assert header.endswith(
+        "profiles/quick.yaml + profiles/parts/base.yaml + profiles/parts/a.yaml + profiles/parts/b.yaml + "
+        "profiles/mine.yaml"
+    )
+    assert "extends" not in yaml.safe_load(out.read_text())
+    with pytest.raises(ConfigError, match="unknown profile 'parts/a'"):
+        apply_profile("parts/a", profiles, tmp_path / "other.yaml")
+
+
+@pytest.mark.parametrize(
+    ("files", "message"),
+    [
+        ({"mine.yaml": "extends: nowhere\n"}, "extends unknown part 'nowhere'; parts: \\['a'\\]"),
+        ({"mine.yaml": "extends: a\n", "parts/a.yaml": "extends: [b]\n", "parts/b.yaml": "extends: a\n"},
+         "in a cycle: mine -> a -> b -> a"),
+        ({"mine.yaml": "extends: {a: 1}\n"}, "extends must name a part"),
+        ({"mine.yaml": "- seeds\n"}, "a profile must be a mapping"),
+    ],
+)  # fmt: skip
+def test_bad_extends_is_refused_in_one_line(tmp_path: Path, files: dict[str, str], message: str) -> None:
+    profiles = tmp_path / "profiles"
+    (profiles / "parts").mkdir(parents=True)
+    shutil.copy2(PROFILES / "quick.yaml", profiles)
+    (profiles / "parts" / "a.yaml").write_text("alpha: 3.0\n")
+    for name, text in files.items():
+        (profiles / name).write_text(text)
+    with pytest.raises(ConfigError, match=message) as err:
+        apply_profile("mine", profiles, tmp_path / "params.yaml")
+    assert len(str(err.value).splitlines()) == 1
+    assert not (tmp_path / "params.yaml").exists()
+
+
 def test_invalid_profile_does_not_overwrite_params(tmp_path: Path) -> None:
     profiles = tmp_path / "profiles"
     shutil.copytree(PROFILES, profiles)

@@ -1,4 +1,9 @@
-"""Profiles: ``profiles/quick.yaml`` overlaid with ``profiles/<name>.yaml``, written as ``params.yaml``."""
+"""Profiles: ``profiles/quick.yaml`` overlaid with ``profiles/<name>.yaml``, written as ``params.yaml``.
+
+A profile may start from shared parts with ``extends: <part>`` or ``extends: [<part>, ...]``: files under
+``profiles/parts/`` (named without ``.yaml``, e.g. ``two-phases``), overlaid in order before the profile's own keys;
+a part may extend other parts. So a block several profiles share (two evolution phases, Diffuser's training recipe,
+a task's entry) is written once."""
 
 from __future__ import annotations
 
@@ -12,31 +17,39 @@ from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.tiny import shrink
 from adaptdiffuser.io import atomic_path
 
+#: the folder of ``profiles/`` holding the parts profiles extend (not profiles themselves)
+PARTS_DIR = "parts"
+
 
 def apply_profile(
     profile: str, profiles_dir: str | Path = "profiles", params_path: str | Path = "params.yaml", tiny: bool = False
 ) -> Path:
-    """Write ``params.yaml`` as the quick profile overlaid with ``profiles/<profile>.yaml``; validate first. With
-    ``tiny``, the profile at tiny scale (:mod:`adaptdiffuser.config.tiny`)."""
+    """Write ``params.yaml`` as the quick profile overlaid with ``profiles/<profile>.yaml`` and the parts it
+    extends (:func:`profile_layers`); validate first. With ``tiny``, the profile at tiny scale
+    (:mod:`adaptdiffuser.config.tiny`)."""
 
     profiles_dir = Path(profiles_dir)
     base_path = profiles_dir / "quick.yaml"
     overlay_path = profiles_dir / f"{profile}.yaml"
-    if not overlay_path.exists():
+    if "/" in profile or "\\" in profile or not overlay_path.exists():
         known = sorted(p.stem for p in profiles_dir.glob("*.yaml"))
         raise ConfigError(f"unknown profile {profile!r}; known profiles: {known}")
     base_text = base_path.read_text()
     base = yaml.safe_load(base_text) or {}
-    merged = deep_merge(base, yaml.safe_load(overlay_path.read_text()) or {})
+    layers = profile_layers(overlay_path, profiles_dir / PARTS_DIR)
+    merged = base
+    for _, overlay in layers:
+        merged = deep_merge(merged, overlay)
     if tiny:
         merged = shrink(merged, params_from_dict(merged))
     if merged == base:  # the quick profile itself: keep its comments
         text = base_text
     else:
         how = " at tiny scale (--tiny; its scores mean nothing)" if tiny else ""
+        files = " + ".join(f"profiles/{path.relative_to(profiles_dir).as_posix()}" for path, _ in layers)
         header = (
             f"# Written by `adaptdiffuser profile {profile}{' --tiny' if tiny else ''}`: profiles/quick.yaml + "
-            f"profiles/{profile}.yaml{how}\n"
+            f"{files}{how}\n"
         )
         text = header + yaml.safe_dump(merged, sort_keys=False)
     params_path = Path(params_path)
@@ -44,3 +57,27 @@ def apply_profile(
         tmp.write_text(text)
         load_params(tmp)
     return params_path
+
+
+def profile_layers(path: Path, parts_dir: Path, chain: tuple[Path, ...] = ()) -> list[tuple[Path, dict]]:
+    """The files a profile or part overlays on the quick profile, in order, each with its keys (``extends``
+    removed): the parts it extends, each preceded by its own parts, then itself; a part reached twice is
+    overlaid once, where first reached. ``chain`` holds the files extending this one, to refuse a cycle."""
+    if path in chain:
+        raise ConfigError(f"profile parts extend each other in a cycle: {' -> '.join(p.stem for p in (*chain, path))}")
+    raw = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: a profile must be a mapping of params keys")
+    extends = raw.pop("extends", [])
+    names = [extends] if isinstance(extends, str) else extends
+    if not isinstance(names, list) or not all(isinstance(name, str) for name in names):
+        raise ConfigError(f"{path}: extends must name a part of {parts_dir} or list them, got {extends!r}")
+    layers: list[tuple[Path, dict]] = []
+    for name in names:
+        part = parts_dir / f"{name}.yaml"
+        if not part.is_file():
+            known = sorted(p.stem for p in parts_dir.glob("*.yaml"))
+            raise ConfigError(f"{path}: extends unknown part {name!r}; parts: {known}")
+        seen = {file for file, _ in layers}
+        layers += [layer for layer in profile_layers(part, parts_dir, (*chain, path)) if layer[0] not in seen]
+    return [*layers, (path, raw)]
