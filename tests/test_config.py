@@ -221,7 +221,10 @@ def test_profiles_extend_parts_in_order(tmp_path: Path) -> None:
         ({"mine.yaml": "extends: a\n", "parts/a.yaml": "extends: [b]\n", "parts/b.yaml": "extends: a\n"},
          "in a cycle: mine -> a -> b -> a"),
         ({"mine.yaml": "extends: {a: 1}\n"}, "extends must name a part"),
-        ({"mine.yaml": "- seeds\n"}, "a profile must be a mapping"),
+        ({"mine.yaml": "- seeds\n"}, "a profile or part must be a mapping"),
+        ({"mine.yaml": "extends: ../mine\n"}, "extends must name a part"),
+        ({"mine.yaml": "extends: a\n", "parts/a.yaml": "alpha: [1\n"}, "a.yaml: not valid YAML \\(line 2\\)"),
+        ({"mine.yaml": "alpha: 1\n", "quick.yaml": "extends: a\n"}, "quick.yaml: the quick profile .* extends nothing"),
     ],
 )  # fmt: skip
 def test_bad_extends_is_refused_in_one_line(tmp_path: Path, files: dict[str, str], message: str) -> None:

@@ -15,7 +15,7 @@ from adaptdiffuser.config import (
     ConfigError,
     DiffusionParams,
     ModelParams,
-    deep_merge,
+    apply_profile,
     params_from_dict,
     set_dotted,
 )
@@ -159,7 +159,9 @@ def test_replanning_every_k_steps_plans_from_the_real_state_and_records_what_it_
         ReplanningController(planner, seed=3, replan_every=HORIZON)
 
 
-def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(planner: RecordingPlanner) -> None:
+def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(
+    planner: RecordingPlanner, tmp_path: Path
+) -> None:
     """The family's stacking controller and its pick-and-place evaluation both follow ``planning``."""
     from adaptdiffuser.family_registry import get_family
 
@@ -169,7 +171,8 @@ def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(planner:
                 "diffusion.horizon": HORIZON,
                 "planning": {"pin_resting_blocks": True, "replan_every": 5},
                 "pick_place": {"setups": [1], "episodes": 1, "batch_size": 1},
-            }
+            },
+            tmp_path,
         )  # fmt: skip
     ).resolve("kuka-stacking")
     family = get_family("kuka")
@@ -181,20 +184,20 @@ def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(planner:
     assert len(planner.plans) == plans_per_episode and all(p is not None for p in planner.projections)
 
 
-def kuka_raw(task_settings: dict) -> dict:
+def kuka_raw(task_settings: dict, tmp_path: Path) -> dict:
     """The quick-kuka profile's raw params, with these ``task.kuka-stacking`` keys (dotted or nested) set."""
     profiles = Path(__file__).resolve().parents[1] / "profiles"
-    raw = deep_merge(*(yaml.safe_load((profiles / name).read_text()) for name in ("quick.yaml", "quick-kuka.yaml")))
+    raw = yaml.safe_load(apply_profile("quick-kuka", profiles, tmp_path / "params.yaml").read_text())
     for key, value in task_settings.items():
         raw = set_dotted(raw, f"task.kuka-stacking.{key}", value)
     return raw
 
 
-def test_replan_every_longer_than_a_plan_is_refused() -> None:
-    horizon = kuka_raw({})["task"]["kuka-stacking"]["diffusion"]["horizon"]
-    params_from_dict(kuka_raw({"planning.replan_every": horizon - 1}))  # a whole plan: accepted
+def test_replan_every_longer_than_a_plan_is_refused(tmp_path: Path) -> None:
+    horizon = kuka_raw({}, tmp_path)["task"]["kuka-stacking"]["diffusion"]["horizon"]
+    params_from_dict(kuka_raw({"planning.replan_every": horizon - 1}, tmp_path))  # a whole plan: accepted
     with pytest.raises(ConfigError, match="planning.replan_every"):
-        params_from_dict(kuka_raw({"planning.replan_every": horizon}))
+        params_from_dict(kuka_raw({"planning.replan_every": horizon}, tmp_path))
 
 
 def test_pick_and_place_guidance_follows_the_stretch_not_the_plan(planner: RecordingPlanner) -> None:

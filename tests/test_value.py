@@ -217,14 +217,14 @@ class Interrupted(Exception):
 
 
 def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
-    """Killed at step 25 with states every 10 steps, a new process (other initial weights) goes on from step 20
-    and ends with the straight run's weights and history; a finished state trains nothing; another run's state is
-    ignored."""
+    """Killed at step 25 with states every 8 steps and a loss logged every 5, a new process (other initial weights)
+    goes on from step 24 and ends with the straight run's weights and history (the mean at 25 over steps 21-25); a
+    finished state trains nothing; another run's state is ignored."""
     traj = _first_state_value_data(0, n=64)
     normalizer = GaussianNormalizer.fit(joint_array(traj))
     ds = ValueWindowDataset(traj, 8, normalizer, discount=0.99, terminal_penalty=0.0)
     diffusion = tiny_diffusion(8)
-    settings = ValueSettings(steps=30, batch_size=8, lr=1e-3, seed=3, log_every=5, checkpoint_every=10)
+    settings = ValueSettings(steps=30, batch_size=8, lr=1e-3, seed=3, log_every=5, checkpoint_every=8)
 
     def fresh(seed: int) -> ValueNetwork:
         torch.manual_seed(seed)
@@ -240,7 +240,7 @@ def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
 
     with pytest.raises(Interrupted):
         train_value(fresh(0), diffusion, ds, settings, CPU, False, kill_at_25, resume_path=resume, run_id="a")
-    assert torch.load(resume, weights_only=False)["step"] == 20
+    assert torch.load(resume, weights_only=False)["step"] == 24
     logged: list[int] = []
     resumed_net = fresh(123)
     resumed = train_value(

@@ -399,7 +399,8 @@ def profile(
         bool, typer.Option(help="the profile at tiny scale: same shapes and code paths, runs in minutes")
     ] = False,
 ) -> None:
-    """Switch params.yaml to a profile (profiles/quick.yaml overlaid with profiles/<name>.yaml)."""
+    """Switch params.yaml to a profile (profiles/quick.yaml overlaid with the parts profiles/<name>.yaml extends,
+    then its own keys)."""
     out = _guarded(lambda: apply_profile(name, profiles_dir, params, tiny=tiny))
     scale = " at tiny scale" if tiny else ""
     typer.echo(f"{out} now holds profile {name!r}{scale}; run `dvc repro`")

@@ -67,28 +67,35 @@ def loop_state(
     optimizer: torch.optim.Optimizer,
     rng: np.random.Generator,
     gen: torch.Generator,
-    history: list[tuple[int, float]],
+    log: LossLog,
 ) -> dict[str, Any]:
     """What a training loop needs besides its weights to go on exactly from ``step``: the optimizer, both random
-    streams and the loss history, with the run it belongs to."""
+    streams and the loss log (history and the losses since its last mean), with the run it belongs to."""
     return {
         "run_id": run_id,
         "step": step,
         "optimizer": optimizer.state_dict(),
         "numpy_rng": rng.bit_generator.state,
         "torch_rng": gen.get_state(),
-        "history": history,
+        "history": log.history,
+        "running": log.running,
     }
 
 
 def restore_loop_state(
-    state: dict[str, Any], optimizer: torch.optim.Optimizer, rng: np.random.Generator, gen: torch.Generator
-) -> tuple[int, list[tuple[int, float]]]:
-    """Put a :func:`loop_state` back into ``optimizer``, ``rng`` and ``gen``; return its step and loss history."""
+    state: dict[str, Any],
+    optimizer: torch.optim.Optimizer,
+    rng: np.random.Generator,
+    gen: torch.Generator,
+    log: LossLog,
+) -> int:
+    """Put a :func:`loop_state` back into ``optimizer``, ``rng``, ``gen`` and ``log``; return its step."""
     optimizer.load_state_dict(state["optimizer"])
     rng.bit_generator.state = state["numpy_rng"]
     gen.set_state(state["torch_rng"].cpu())
-    return state["step"], state["history"]
+    log.history[:] = state["history"]
+    log.running[:] = state.get("running", [])  # states written before it was kept: from a logged step
+    return state["step"]
 
 
 def save_resume_state(path: Path, state: dict[str, Any]) -> None:
@@ -101,9 +108,9 @@ class LossLog:
     """Mean training loss over each ``every`` steps (and at the last step): kept in ``history``, shown on the
     progress bar and passed to ``on_log``."""
 
-    def __init__(self, every: int, last: int, bar: tqdm, on_log: LogFn | None, history: list | None = None) -> None:
-        self.every, self.last, self.bar, self.on_log = every, last, bar, on_log
-        self.history: list[tuple[int, float]] = history if history is not None else []
+    def __init__(self, every: int, last: int, on_log: LogFn | None, bar: tqdm | None = None) -> None:
+        self.every, self.last, self.on_log, self.bar = every, last, on_log, bar
+        self.history: list[tuple[int, float]] = []
         self.running: list[float] = []
 
     def add(self, loss: float) -> None:
@@ -115,7 +122,8 @@ class LossLog:
         mean_loss = float(np.mean(self.running))
         self.running = []
         self.history.append((done, mean_loss))
-        self.bar.set_postfix(loss=f"{mean_loss:.4f}")
+        if self.bar is not None:
+            self.bar.set_postfix(loss=f"{mean_loss:.4f}")
         if self.on_log:
             self.on_log(done, mean_loss)
 
@@ -199,19 +207,19 @@ def train(
             group["lr"] = cfg.lr
     rng = np.random.default_rng(cfg.seed)
     gen = torch.Generator(device=device).manual_seed(cfg.seed)
-    start, history = 0, []
+    start = 0
     state = load_resume_state(resume_path, run_id, device)
-    if state is not None:
-        model.model.load_state_dict(state["model"])
-        ema.model.load_state_dict(state["ema"])
-        start, history = restore_loop_state(state, optimizer, rng, gen)
     act_dim = model.act_dim
     conditioning = bundle.config.get("conditioning", "start_goal")
     scheduled = cfg.lr_schedule != "constant" or cfg.lr_warmup > 0  # else every step uses cfg.lr as set above
-    bar = tqdm(
+    log = LossLog(cfg.log_every, cfg.steps, on_log)
+    if state is not None:
+        model.model.load_state_dict(state["model"])
+        ema.model.load_state_dict(state["ema"])
+        start = restore_loop_state(state, optimizer, rng, gen, log)
+    log.bar = bar = tqdm(
         range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress, mininterval=2.0
     )
-    log = LossLog(cfg.log_every, cfg.steps, bar, on_log, history)
     for step in bar:
         for _ in range(cfg.grad_accum):
             x0 = torch.from_numpy(dataset.sample(cfg.batch_size, rng)).to(device)
@@ -234,9 +242,9 @@ def train(
         if on_checkpoint is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
             on_checkpoint(done)
         if resume_path is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
-            state = loop_state(run_id, done, optimizer, rng, gen, history)
+            state = loop_state(run_id, done, optimizer, rng, gen, log)
             save_resume_state(resume_path, state | {"model": model.model.state_dict(), "ema": ema.model.state_dict()})
     model.eval()
     ema.eval()
     bundle.optimizer = optimizer_record(optimizer)
-    return history
+    return log.history

@@ -83,16 +83,16 @@ def train_value(
     optimizer = torch.optim.Adam(value_net.parameters(), lr=settings.lr)
     rng = np.random.default_rng(settings.seed)
     gen = torch.Generator(device=device).manual_seed(settings.seed)
-    start, history = 0, []
+    start = 0
+    log = LossLog(settings.log_every, settings.steps, on_log)
     state = load_resume_state(resume_path, run_id, device)
     if state is not None:
         value_net.load_state_dict(state["model"])
-        start, history = restore_loop_state(state, optimizer, rng, gen)
-    bar = tqdm(
+        start = restore_loop_state(state, optimizer, rng, gen, log)
+    log.bar = bar = tqdm(
         range(start, settings.steps), initial=start, total=settings.steps, desc="value", disable=not progress,
         mininterval=2.0,
     )  # fmt: skip
-    log = LossLog(settings.log_every, settings.steps, bar, on_log, history)
     for step in bar:
         windows, values = dataset.sample(settings.batch_size, rng)
         x0 = torch.from_numpy(windows).to(device)
@@ -105,7 +105,7 @@ def train_value(
         done = step + 1
         log.step_done(done)
         if resume_path is not None and (done % settings.checkpoint_every == 0 or done == settings.steps):
-            state = loop_state(run_id, done, optimizer, rng, gen, log.history)
+            state = loop_state(run_id, done, optimizer, rng, gen, log)
             save_resume_state(resume_path, state | {"model": value_net.state_dict()})
     value_net.eval()
     return log.history

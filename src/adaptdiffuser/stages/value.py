@@ -21,7 +21,7 @@ from adaptdiffuser.layout import model_dir, value_dir, value_resume_path
 from adaptdiffuser.models.value import ValueNetwork
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.seeding import derive_seed, training_seed
-from adaptdiffuser.stages.training_data import code_digest, expert_training_data
+from adaptdiffuser.stages.training_data import code_digest, expert_training_data, pretrain_config
 from adaptdiffuser.tooling.mlflow_logging import stage_run
 from adaptdiffuser.training import LogFn, fingerprint
 from adaptdiffuser.value_training import heldout_r2, save_value, train_value
@@ -87,6 +87,13 @@ def fit_value(
     return net, fit, history
 
 
+def value_run_id(task: TaskParams, logged: dict[str, Any], seed: int) -> str:
+    """What tells a value training's resume state apart: its logged params (settings, network, data, seed, code),
+    the diffusion schedule and model section it is built with, and the pretraining seed that draws the expert
+    subset its normalizer is fitted on."""
+    return fingerprint(logged, task.section("diffusion"), task.section("model"), pretrain_config(task, seed).seed)
+
+
 def value_settings(task: TaskParams, seed: int) -> ValueSettings:
     """The task's value settings for training seed ``seed`` (its own seed derived from it)."""
     return task.settings.value.model_copy(update={"seed": training_seed(task.settings.value.seed, seed)})
@@ -115,7 +122,7 @@ def run_value(
         net, fit, history = fit_value(
             task, bundle, traj, seed, device, progress,
             on_log=lambda step, loss: mlflow.log_metric("value_loss", loss, step=step),
-            resume_path=resume, run_id=fingerprint(logged, task.section("diffusion")),
+            resume_path=resume, run_id=value_run_id(task, logged, seed),
         )  # fmt: skip
         mlflow.log_metrics({"windows": fit.pop("training_windows"), "parameters": fit.pop("parameters")})
         if fit["heldout_episodes"]:
