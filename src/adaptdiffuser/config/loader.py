@@ -43,12 +43,9 @@ def missing_keys(raw: Mapping[str, Any], cls: type = Params, prefix: str = "") -
     return missing
 
 
-def load_params(path: str | Path = "params.yaml") -> Params:
-    """Load and validate ``params.yaml``; raise :class:`ConfigError` naming the first bad key, or the keys of the
-    generic sections it leaves out (:func:`missing_keys`)."""
-    path = Path(path)
-    if not path.exists():
-        raise ConfigError(f"params file not found: {path}")
+def read_yaml_mapping(path: Path, not_a_mapping: str) -> dict:
+    """The mapping a YAML file holds (an empty file: none); bad YAML, or ``not_a_mapping`` when it holds something
+    else, is refused in one line naming the file."""
     try:
         raw = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as err:
@@ -56,7 +53,17 @@ def load_params(path: str | Path = "params.yaml") -> Params:
         line = f" (line {where.line + 1})" if where is not None else ""
         raise ConfigError(f"{path}: not valid YAML{line}: {getattr(err, 'problem', None) or err}") from None
     if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: top level must be a mapping of sections")
+        raise ConfigError(f"{path}: {not_a_mapping}")
+    return raw
+
+
+def load_params(path: str | Path = "params.yaml") -> Params:
+    """Load and validate ``params.yaml``; raise :class:`ConfigError` naming the first bad key, or the keys of the
+    generic sections it leaves out (:func:`missing_keys`)."""
+    path = Path(path)
+    if not path.exists():
+        raise ConfigError(f"params file not found: {path}")
+    raw = read_yaml_mapping(path, "top level must be a mapping of sections")
     params = params_from_dict(raw)  # a bad value is named first
     missing = missing_keys(raw)
     if missing:

@@ -12,13 +12,14 @@ from pathlib import Path
 import yaml
 
 from adaptdiffuser.config.errors import ConfigError
-from adaptdiffuser.config.loader import load_params, params_from_dict
+from adaptdiffuser.config.loader import load_params, params_from_dict, read_yaml_mapping
 from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.tiny import shrink
 from adaptdiffuser.io import atomic_path
 
 #: the folder of ``profiles/`` holding the parts profiles extend (not profiles themselves)
 PARTS_DIR = "parts"
+NOT_A_MAPPING = "a profile or part must be a mapping of params keys"
 
 
 def apply_profile(
@@ -35,7 +36,7 @@ def apply_profile(
         known = sorted(p.stem for p in profiles_dir.glob("*.yaml"))
         raise ConfigError(f"unknown profile {profile!r}; known profiles: {known}")
     base_text = base_path.read_text()
-    base = read_profile_file(base_path)
+    base = read_yaml_mapping(base_path, NOT_A_MAPPING)
     if "extends" in base:
         raise ConfigError(f"{base_path}: the quick profile is the base of every profile and extends nothing")
     layers = profile_layers(overlay_path, profiles_dir / PARTS_DIR)
@@ -67,7 +68,7 @@ def profile_layers(path: Path, parts_dir: Path, chain: tuple[Path, ...] = ()) ->
     overlaid once, where first reached. ``chain`` holds the files extending this one, to refuse a cycle."""
     if path in chain:
         raise ConfigError(f"profile parts extend each other in a cycle: {' -> '.join(p.stem for p in (*chain, path))}")
-    raw = read_profile_file(path)
+    raw = read_yaml_mapping(path, NOT_A_MAPPING)
     extends = raw.pop("extends", [])
     names = [extends] if isinstance(extends, str) else extends
     if not isinstance(names, list) or not all(isinstance(n, str) and n and not {"/", "\\"} & set(n) for n in names):
@@ -81,17 +82,3 @@ def profile_layers(path: Path, parts_dir: Path, chain: tuple[Path, ...] = ()) ->
         seen = {file for file, _ in layers}
         layers += [layer for layer in profile_layers(part, parts_dir, (*chain, path)) if layer[0] not in seen]
     return [*layers, (path, raw)]
-
-
-def read_profile_file(path: Path) -> dict:
-    """A profile or part file's mapping (an empty file: none); a YAML error or another shape is refused in one line
-    naming the file."""
-    try:
-        raw = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as err:
-        where = getattr(err, "problem_mark", None)
-        line = f" (line {where.line + 1})" if where is not None else ""
-        raise ConfigError(f"{path}: not valid YAML{line}: {getattr(err, 'problem', None) or err}") from None
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: a profile or part must be a mapping of params keys")
-    return raw
