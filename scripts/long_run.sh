@@ -16,17 +16,21 @@
 #   bash scripts/long_run.sh stop FOLDER
 #       stop the run and everything it started (to free the CPU for other work); `resume` continues it, training
 #       from its last checkpoint
+#   bash scripts/long_run.sh save FOLDER [--into DIR]
+#       copy what the run has measured so far (the files of its metrics/ that differ from the pinned commit's, its
+#       params.yaml and dvc.lock, and the commit) into DIR (default: metrics/runs/<FOLDER's name> here), to commit
+#       before a session ends: the run lives on one machine, its measurements then outlive it
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,18p' "$0" >&2; exit 2; }
+usage() { sed -n '4,22p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
 action=$1
 folder=$(realpath -m "$2")
 shift 2
-profile="" script="" commit="HEAD" source="$here" venv="" foreground=0
+profile="" script="" commit="HEAD" source="$here" venv="" foreground=0 into=""
 while [ $# -gt 0 ]; do
   case $1 in
     --profile) profile=$2; shift 2 ;;
@@ -35,6 +39,7 @@ while [ $# -gt 0 ]; do
     --from) source=$2; shift 2 ;;
     --venv) venv=$(realpath "$2"); shift 2 ;;
     --foreground) foreground=1; shift ;;
+    --into) into=$(realpath -m "$2"); shift 2 ;;
     *) die "unknown option $1" ;;
   esac
 done
@@ -136,6 +141,32 @@ EOF
     for _ in $(seq 30); do running_pid > /dev/null || break; sleep 1; done
     if running_pid > /dev/null; then kill -KILL -- "-$pid" 2>/dev/null || kill -KILL "$pid"; fi
     echo "stopped $folder (continue: bash scripts/long_run.sh resume $folder)"
+    ;;
+  save)
+    [ -f "$folder/.long_run.env" ] || die "$folder is not a long run"
+    # shellcheck disable=SC1091
+    source "$folder/.long_run.env"
+    dest=${into:-$here/metrics/runs/$(basename "$folder")}
+    running=false
+    if running_pid > /dev/null; then running=true; fi
+    # whole or absent: build beside the destination, then swap it in
+    mkdir -p "$(dirname "$dest")"
+    tmp=$(mktemp -d "$dest.XXXXXX")
+    trap 'rm -rf "$tmp"' EXIT
+    # the run's own: files of metrics/ that the pinned commit does not hold as they are now
+    (cd "$folder" && git ls-files --others --modified -z -- metrics | sort -zu |
+      while IFS= read -r -d '' file; do [ ! -f "$file" ] || cp --parents "$file" "$tmp/"; done)
+    for file in params.yaml dvc.lock; do [ ! -f "$folder/$file" ] || cp "$folder/$file" "$tmp/$file"; done
+    python3 -c 'import json, sys; keys = "commit", "profile", "runs", "saved_at", "running"
+print(json.dumps(dict(zip(keys, sys.argv[1:])) | {"running": sys.argv[5] == "true"}, indent=2))' \
+      "$(git -C "$folder" rev-parse HEAD)" "$LONG_RUN_PROFILE" "${LONG_RUN_SCRIPT:-dvc repro}" \
+      "$(date -u +%FT%TZ)" "$running" > "$tmp/run.json"
+    rm -rf "$dest.old"
+    if [ -e "$dest" ]; then mv "$dest" "$dest.old"; fi
+    mv "$tmp" "$dest"
+    rm -rf "$dest.old"
+    trap - EXIT
+    echo "saved $folder's measurements in $dest ($(find "$dest" -path "$dest/metrics/*" -type f | wc -l) files of metrics/; commit them)"
     ;;
   *) usage ;;
 esac

@@ -32,6 +32,11 @@ def _phase0_of_one_task(path: Path) -> None:
 def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     (tmp_path / "project").mkdir()
     project = make_smoke_project(tmp_path / "project", run_tool, edit=_phase0_of_one_task)
+    earlier = Path("metrics/science/earlier.json")  # a result the commit holds: not the run's to save
+    (project / earlier).parent.mkdir(parents=True)
+    (project / earlier).write_text("{}\n")
+    run_tool(["git", "add", str(earlier)], project)
+    run_tool(["git", "commit", "-q", "-m", "an earlier result"], project)
     head = run_tool(["git", "rev-parse", "HEAD"], project).strip()
     run_tool(["git", "commit", "-q", "--allow-empty", "-m", "later work"], project)  # the run stays on `head`
     folder = tmp_path / "run"
@@ -56,6 +61,10 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     assert f"resume state: {MAZE}-phase0-seed1.pt (step " in status
     refused = subprocess.run(["bash", SCRIPT, "start", str(folder)], capture_output=True, text=True)
     assert refused.returncode == 2 and "exists: continue it with" in refused.stderr
+    saved = tmp_path / "saved"  # what the run measured so far, to commit before the machine goes
+    run_tool(["bash", SCRIPT, "save", str(folder), "--into", str(saved)], tmp_path)
+    assert json.loads((saved / "run.json").read_text())["commit"] == head
+    (saved / "stale.txt").write_text("replaced whole by the next save")
 
     run_tool(["bash", SCRIPT, "resume", str(folder), "--foreground"], tmp_path)
     log = (folder / "long_run.log").read_text()
@@ -66,6 +75,19 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     assert "0 left" in status and "resume state:" not in status
     assert run_tool(["git", "rev-parse", "HEAD"], folder).strip() == head
     assert (folder / f"metrics/tasks/{MAZE}/phase0-unseen.json").exists()
+
+    out = run_tool(["bash", SCRIPT, "save", str(folder), "--into", str(saved)], tmp_path)
+    assert f"in {saved}" in out and not (saved / "stale.txt").exists()
+    record = json.loads((saved / "run.json").read_text())
+    assert record["commit"] == head and record["running"] is False
+    assert (saved / "params.yaml").read_bytes() == (folder / "params.yaml").read_bytes()
+    assert (saved / "dvc.lock").read_bytes() == (folder / "dvc.lock").read_bytes()
+    files = [path.relative_to(saved) for path in sorted((saved / "metrics").rglob("*")) if path.is_file()]
+    assert Path(f"metrics/tasks/{MAZE}/phase0-unseen.json") in files and earlier not in files
+    for file in files:  # the run's own measurements: as the run wrote them, not as the pinned commit holds them
+        assert (saved / file).read_bytes() == (folder / file).read_bytes()
+        committed = subprocess.run(["git", "show", f"{head}:{file}"], cwd=folder, capture_output=True)
+        assert committed.returncode != 0 or committed.stdout != (folder / file).read_bytes()
 
 
 def _maze_phases_only(path: Path) -> None:
