@@ -105,6 +105,7 @@ def test_profile_list() -> None:
         "smoke",
         "quick-locomotion",
         "quick-kuka",
+        "science-kuka",
         "paper-kuka",
         "paper-locomotion",
         "science",
@@ -167,6 +168,11 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         kuka = params.resolve("kuka-stacking")
         assert kuka.family == "kuka" and kuka.diffusion.horizon == 128 and kuka.settings.replans == 3
         assert params.phase_names == ["phase1", "phase2"] and params.phase(2).discriminate.max_error == 1.02
+    if profile == "science-kuka":  # quick-kuka over three training seeds, nothing else changed
+        science = yaml.safe_load(out.read_text())
+        quick = yaml.safe_load(apply_profile("quick-kuka", PROFILES, tmp_path / "quick.yaml").read_text())
+        (tmp_path / "quick.yaml").unlink()
+        assert params.seeds == (0, 1, 2) and science == quick | {"seeds": [0, 1, 2]}
     if profile == "paper-kuka":
         kuka = params.resolve("kuka-stacking")
         assert kuka.settings.collect.episodes == 10000 and kuka.model.dim == 128 and kuka.diffusion.n_steps == 1000
