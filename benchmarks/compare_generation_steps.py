@@ -59,12 +59,14 @@ def main() -> None:
         begin = time.perf_counter()
         generated, _ = family.generate(task, planner, files, g, params.alpha, seed, {"benchmark": True}, False)
         generate_s = time.perf_counter() - begin
-        judged = family.discriminate(task, generated, cfg.discriminate, args.phase, files, False).report()
+        judgement = family.discriminate(task, generated, cfg.discriminate, args.phase, files, False)
+        judged = judgement.report()
+        details = "".join(f", {key} {value}" for key, value in judgement.details.items())  # the family's own counts
         tracked = judged["generated"] - judged["rejected_tracking"]
         print(f"DDIM {steps:3d} steps: {g.tasks / generate_s:6.1f} plans/s ({generate_s:5.1f} s); tracked "
-              f"{tracked}, kept {judged['kept']} of {judged['generated']} (coin {judged['coin_kept']} of "
-              f"{judged['coin_generated']}), kept mean return {judged['return_mean_kept']:.1f}, tracking error "
-              f"{judged['tracking_error_mean']:.3f}", flush=True)  # fmt: skip
+              f"{tracked}, kept {judged['kept']} of {judged['generated']}{details}, kept mean return "
+              f"{judged['return_mean_kept']:.1f}, tracking error {judged['tracking_error_mean']:.3f}",
+              flush=True)  # fmt: skip
 
 
 if __name__ == "__main__":

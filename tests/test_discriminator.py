@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -27,9 +26,15 @@ from adaptdiffuser.evolution.discriminator import (
     select_top_k,
     track_plan,
 )
+from adaptdiffuser.families.maze2d.evolution import with_coin_tasks
 from adaptdiffuser.families.maze2d.execution import PlanFollower
-from adaptdiffuser.families.maze2d.generation import generate_plans, split_task_trajectories, task_trajectories
-from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, picks_coin_then_reaches_goal
+from adaptdiffuser.families.maze2d.generation import (
+    NavigationTasks,
+    generate_plans,
+    split_task_trajectories,
+    task_trajectories,
+)
+from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES
 from adaptdiffuser.families.maze2d.tasks import sample_navigation_tasks
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
@@ -254,11 +259,16 @@ def test_coin_tasks_are_kept_when_they_pick_the_coin_then_reach_the_goal() -> No
     states, actions, goals = _wall_and_feasible_plans()
     coin_on_the_way = states[1][40, :2]  # passed by the late plan before it reaches the goal
     coins = np.stack([[np.nan, np.nan], coin_on_the_way, [5.0, 5.0]])
+    no_cells = np.zeros((0, 2), dtype=np.int64)
+    tasks = NavigationTasks(np.stack([s[0] for s in states]), goals, no_cells, no_cells, coins)
     cfg = DiscriminateParams(max_error=THRESHOLD, rule="top_k", top_k=5)
-    check = partial(picks_coin_then_reaches_goal, radius=0.5)
-    judgement = discriminate(env, states, actions, goals, cfg, TopKRule(5), PlanFollower, coins, check, progress=False)
-    assert judgement.coin_tasks.tolist() == [False, True, True]
+    # the generic discriminator ranks only the navigation task; the coin tasks are the family's to judge
+    ranked = discriminate(env, states, actions, goals, cfg, TopKRule(5), PlanFollower, ~tasks.has_coin(), False)
+    assert ranked.kept.tolist() == [0] and "coin_kept" not in ranked.report()
+    judgement = with_coin_tasks(ranked, tasks, radius=0.5, must_end_at_goal=False)
     assert judgement.kept.tolist() == [0, 1]  # the wall plan failed tracking, whatever its coin
     assert judgement.report()["coin_generated"] == 2 and judgement.report()["coin_kept"] == 1
-    with pytest.raises(ValueError, match="coin_check"):
-        discriminate(env, states, actions, goals, cfg, TopKRule(5), PlanFollower, coins, progress=False)
+    far = with_coin_tasks(ranked, tasks, radius=0.01, must_end_at_goal=False)  # the coin missed by more
+    assert far.kept.tolist() == [0] and far.report()["coin_kept"] == 0
+    with pytest.raises(ValueError, match="ranked marks 2 plans"):
+        discriminate(env, states, actions, goals, cfg, TopKRule(5), PlanFollower, np.ones(2, dtype=bool), False)

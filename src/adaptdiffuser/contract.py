@@ -140,12 +140,13 @@ class TrackedTrajectory:
 @dataclass
 class Judgement:
     """The discriminator's verdict on generated plans: the trajectories it judged (executed, or planned when
-    tracking is off), which passed tracking, and the indices kept, best first where the rule ranks."""
+    tracking is off), which passed tracking, the indices kept (best first where the rule ranks) and any counts
+    of the family's own for the report (``details``)."""
 
     trajectories: list[TrackedTrajectory]
     passed_tracking: np.ndarray
     kept: np.ndarray
-    coin_tasks: np.ndarray | None = None
+    details: dict[str, int | float] = field(default_factory=dict)
 
     def report(self) -> dict[str, float | int]:
         """Counts and distributions for the stage report and ``metrics/summary.json``."""
@@ -153,7 +154,6 @@ class Judgement:
         passed = int(self.passed_tracking.sum())
         mean_errors = np.array([t.mean_error for t in self.trajectories])
         returns = np.array([t.total_reward for t in self.trajectories])
-        coin = self.coin_tasks if self.coin_tasks is not None else np.zeros(n, dtype=bool)
         return {
             "generated": n,
             "rejected_tracking": n - passed,
@@ -163,8 +163,7 @@ class Judgement:
             "tracking_error_mean": float(mean_errors.mean()) if n else 0.0,
             "return_mean": float(returns.mean()) if n else 0.0,
             "return_mean_kept": float(returns[self.kept].mean()) if len(self.kept) else 0.0,
-            "coin_generated": int(coin.sum()),
-            "coin_kept": int(coin[self.kept].sum()),
+            **self.details,
         }
 
 

@@ -5,8 +5,9 @@ What is kept is the *executed* trajectory (real states and actions), never the r
 
 The family supplies what depends on its tasks: the simulator (with the goal-task methods ``set_goal_state``,
 ``reward`` and ``tracking_error`` beside :class:`~adaptdiffuser.contract.Simulator`'s), the controller that
-follows a plan's states (a :data:`FollowerFactory`), any :class:`SelectionRule` beyond the generic ``quantile``
-and ``top_k`` ones, and the check of coin tasks (a :data:`CoinCheck`).
+follows a plan's states (a :data:`FollowerFactory`) and any :class:`SelectionRule` beyond the generic ``quantile``
+and ``top_k`` ones; plans of its own kinds that are not ranked (``ranked`` leaves them out) it judges itself, from
+the :class:`~adaptdiffuser.contract.Judgement`'s trajectories and tracking verdicts.
 """
 
 from __future__ import annotations
@@ -33,9 +34,6 @@ class PlanFollowing(Protocol):
 
 #: ``(env, planned_states) -> follower``: the family's plan-following controller (the one its evaluation uses)
 FollowerFactory = Callable[[Any, np.ndarray], PlanFollowing]
-
-#: ``(trajectory, coin) -> keep?``: whether a coin task's trajectory did what the coin asks
-CoinCheck = Callable[[TrackedTrajectory, np.ndarray], bool]
 
 
 def track_plan(
@@ -165,17 +163,15 @@ def discriminate(
     cfg: DiscriminateParams,
     rule: SelectionRule,
     follower: FollowerFactory,
-    coins: np.ndarray | None = None,
-    coin_check: CoinCheck | None = None,
+    ranked: np.ndarray | None = None,
     progress: bool = True,
 ) -> Judgement:
     """Judge generated plans: track each in the simulator with ``follower`` (or, with ``cfg.tracking`` off, take
-    it as planned), reject those whose tracking error exceeds ``cfg.max_error``, and select among the rest:
-    navigation tasks by ``rule`` (the one ``cfg.rule`` names), coin tasks (a non-NaN row of ``coins``) when
-    ``coin_check`` passes."""
-    coin_tasks = np.zeros(len(states), dtype=bool) if coins is None else ~np.isnan(coins).any(axis=1)
-    if coin_tasks.any() and coin_check is None:
-        raise ValueError("coin tasks need a coin_check to be judged")
+    it as planned), reject those whose tracking error exceeds ``cfg.max_error``, and keep what ``rule`` (the one
+    ``cfg.rule`` names) selects among the rest of the plans ``ranked`` marks (a boolean mask; default all)."""
+    ranked = np.ones(len(states), dtype=bool) if ranked is None else np.asarray(ranked, dtype=bool)
+    if ranked.shape != (len(states),):
+        raise ValueError(f"ranked marks {ranked.shape[0]} plans, not the {len(states)} generated")
     judged = []
     for plan_states, plan_actions, goal in tqdm(
         list(zip(states, actions, goals, strict=True)), desc="discriminate", disable=not progress, mininterval=2.0
@@ -185,7 +181,5 @@ def discriminate(
         else:
             judged.append(planned_trajectory(env, plan_states, plan_actions, goal))
     passed = np.array([passes_tracking(t, cfg.max_error) for t in judged], dtype=bool)
-    kept = select(judged, np.flatnonzero(passed & ~coin_tasks), rule)
-    coin_kept = [i for i in np.flatnonzero(passed & coin_tasks) if coin_check(judged[i], coins[i])]
-    kept = np.concatenate([kept, np.asarray(coin_kept, dtype=np.int64)])
-    return Judgement(trajectories=judged, passed_tracking=passed, kept=kept, coin_tasks=coin_tasks)
+    kept = select(judged, np.flatnonzero(passed & ranked), rule)
+    return Judgement(trajectories=judged, passed_tracking=passed, kept=kept)

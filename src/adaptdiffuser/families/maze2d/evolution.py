@@ -10,7 +10,6 @@ as executed with their real length).
 from __future__ import annotations
 
 from dataclasses import replace
-from functools import partial
 from typing import Any
 
 import numpy as np
@@ -142,18 +141,24 @@ def judge_navigation_data(
     if generated_recipe(generated) == "rollouts":
         return judge_rollouts(env, task, generated, cfg, rule)
     states, actions, tasks = split_task_trajectories(generated)
-    return discriminate(
-        env,
-        states,
-        actions,
-        tasks.goals,
-        cfg,
-        rule,
-        PlanFollower,
-        coins=tasks.coins,
-        coin_check=partial(picks_coin_then_reaches_goal, radius=task.settings.gold_coin.radius),
-        progress=progress,
-    )
+    coin = tasks.has_coin()
+    judgement = discriminate(env, states, actions, tasks.goals, cfg, rule, PlanFollower, ~coin, progress)
+    return with_coin_tasks(judgement, tasks, task.settings.gold_coin.radius, must_end_at_goal=False)
+
+
+def with_coin_tasks(judgement: Judgement, tasks: NavigationTasks, radius: float, must_end_at_goal: bool) -> Judgement:
+    """``judgement`` (of the navigation tasks) with the coin tasks that passed tracking and picked their coin (within
+    ``radius``) before reaching the goal added to what it keeps (and, with ``must_end_at_goal``, end there), and
+    ``coin_generated`` / ``coin_kept`` in its report."""
+    coin = tasks.has_coin()
+    picked = [
+        i
+        for i in np.flatnonzero(coin & judgement.passed_tracking)
+        if picks_coin_then_reaches_goal(judgement.trajectories[i], tasks.coins[i], radius)
+        and (reached_goal(judgement.trajectories[i]) or not must_end_at_goal)
+    ]
+    kept = np.concatenate([judgement.kept, np.asarray(picked, dtype=np.int64)])
+    return replace(judgement, kept=kept, details={"coin_generated": int(coin.sum()), "coin_kept": len(picked)})
 
 
 def rollout_trajectory(
@@ -180,14 +185,11 @@ def judge_rollouts(
         rollout_trajectory(env, s, a, goal, None if errors is None else errors[ep])
         for ep, s, a, goal in zip(generated.episodes(), states, actions, tasks.goals, strict=True)
     ]
-    coin = tasks.has_coin()
-    nav = np.flatnonzero(~coin)
+    nav = np.flatnonzero(~tasks.has_coin())
     returns = np.array([judged[i].total_reward for i in nav])
     kept = nav[rule.select(returns, np.array([real_length(judged[i]) for i in nav], dtype=np.int64))]
-    check = partial(picks_coin_then_reaches_goal, radius=task.settings.gold_coin.radius)
-    coin_kept = [i for i in np.flatnonzero(coin) if reached_goal(judged[i]) and check(judged[i], tasks.coins[i])]
-    kept = np.concatenate([kept, np.asarray(coin_kept, dtype=np.int64)])
-    return Judgement(trajectories=judged, passed_tracking=np.ones(len(judged), dtype=bool), kept=kept, coin_tasks=coin)
+    judgement = Judgement(trajectories=judged, passed_tracking=np.ones(len(judged), dtype=bool), kept=kept)
+    return with_coin_tasks(judgement, tasks, task.settings.gold_coin.radius, must_end_at_goal=True)
 
 
 def arrival_step(trajectory: TrackedTrajectory, coin: np.ndarray | None, radius: float) -> int:
