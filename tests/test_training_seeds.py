@@ -5,6 +5,7 @@ metrics and their mean and standard error over seeds; the summary and report car
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,15 @@ import yaml
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
 from adaptdiffuser.evaluation import standard_error
-from adaptdiffuser.layout import model_dir, phase_metrics_path, results_dir, selected_path
+from adaptdiffuser.layout import (
+    SUMMARY,
+    model_dir,
+    phase_metrics_path,
+    report_plot_path,
+    results_dir,
+    score_table_path,
+    selected_path,
+)
 from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.collect import run_collect
@@ -106,7 +115,7 @@ def test_metrics_are_aggregated_over_seeds(two_seeds: tuple[Path, Params]) -> No
     assert control["gain_stderr"] == pytest.approx(standard_error(gains))
 
 
-def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> None:
+def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params], tmp_path: Path) -> None:
     root, params = two_seeds
     summary = run_summarize(params, root)[TASK]
     phase1 = summary["phase_1"]
@@ -126,6 +135,13 @@ def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params]) -> No
     assert points["score_mean"][0] == [0, 0, 1, 1] and points["control_score_mean"][0] == [1, 1]
     rows = run_report(root)[TASK]
     assert [r["n_seeds"] for r in rows] == [2, 2]
+    # a kept summary draws its figure and table again, wherever it is asked to
+    kept = tmp_path / "kept.json"
+    shutil.copy(root / SUMMARY, kept)
+    assert run_report(root, kept, tmp_path / "again")[TASK] == rows
+    again = tmp_path / "again"
+    assert (again / report_plot_path(TASK)).stat().st_size > 0
+    assert (again / score_table_path(TASK)).read_text() == (root / score_table_path(TASK)).read_text()
 
 
 def test_unseen_task_scores_are_tabled_against_the_control() -> None:

@@ -332,11 +332,17 @@ def summarize(params: ParamsPath = Path("params.yaml")) -> None:
 
 
 @app.command()
-def report() -> None:
-    """Score by phase, per task: plots/report/<task>/score_by_phase.png and metrics/report/<task>/score_by_phase.csv."""
+def report(
+    summary: Annotated[
+        Path | None, typer.Option("--summary", help="a kept summary to draw (default: metrics/summary.json)")
+    ] = None,
+    into: Annotated[Path | None, typer.Option("--into", help="write under this folder (default: here)")] = None,
+) -> None:
+    """Score by phase, per task: plots/report/<task>/score_by_phase.png and metrics/report/<task>/score_by_phase.csv
+    (e.g. `adaptdiffuser report --summary metrics/science/maze2d-medium.json --into out/medium`)."""
     from adaptdiffuser.stages.report import run_report
 
-    tables = _guarded(lambda: run_report(Path.cwd()))
+    tables = _guarded(lambda: run_report(Path.cwd(), summary, into))
     for task, rows in tables.items():
         for row in rows:
             typer.echo(f"{task} phase {row['phase']}: score {row['score_mean']:.1f} +- {row['score_stderr']:.1f}")

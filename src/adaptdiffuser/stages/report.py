@@ -114,14 +114,19 @@ def seed_points(task_summary: dict) -> dict[str, tuple[list[int], list[float]]]:
     return points
 
 
-def run_report(root: Path) -> dict[str, list[dict]]:
-    """Write ``metrics/report/<task>/score_by_phase.csv`` and ``plots/report/<task>/score_by_phase.png`` for every
-    task of the summary."""
-    summary = read_json(root / SUMMARY, "metrics/summary.json (run the summarize stage)")
+def run_report(root: Path, summary_path: Path | None = None, into: Path | None = None) -> dict[str, list[dict]]:
+    """Write ``metrics/report/<task>/score_by_phase.csv`` and ``plots/report/<task>/score_by_phase.png`` under
+    ``into`` (default ``root``) for every task of ``summary_path`` (default the pipeline's ``metrics/summary.json``;
+    a kept summary such as ``metrics/science/<task>.json`` draws its figure again)."""
+    if summary_path is None:
+        summary = read_json(root / SUMMARY, "metrics/summary.json (run the summarize stage)")
+    else:
+        summary = read_json(summary_path, "the summary to report")
+    into = root if into is None else into
     tables = {}
     for task, task_summary in summary.items():
         rows = score_table(task_summary)
-        table = root / score_table_path(task)
+        table = into / score_table_path(task)
         table.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(table) as tmp, open(tmp, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=TABLE_COLUMNS)
@@ -133,7 +138,7 @@ def run_report(root: Path) -> dict[str, list[dict]]:
             [r["phase"] for r in rows],
             [r["score_mean"] for r in rows],
             [r["score_stderr"] for r in rows],
-            root / report_plot_path(task),
+            into / report_plot_path(task),
             control=(
                 [r["phase"] for r in controls],
                 [r["control_score_mean"] for r in controls],
