@@ -11,6 +11,7 @@ holding the pipeline's outputs that ``dvc status`` says "Data and pipelines are 
 
 from __future__ import annotations
 
+import hashlib
 import subprocess
 from pathlib import Path
 
@@ -47,15 +48,24 @@ def main() -> None:
         text = swap(text, before, after)  # the stages that depend on the task's code digest
         print(f"{stage}: {out} {before} -> {after}")
     lock = yaml.safe_load(text)
-    for stage in code_stages(lock):  # stages that list source paths themselves (summarize, report)
-        fresh = {dep["path"]: dep for dep in lock["stages"][stage]["deps"]}
-        for name, entry in lock["stages"].items():
-            for dep in entry.get("deps", []):
-                now = fresh.get(dep["path"])
-                if now is not None and now["md5"] != dep["md5"]:
-                    text = swap(text, digest_lines(dep), digest_lines(now))
-                    print(f"{name}: {dep['path']}")
+    fresh = {dep["path"]: dep for stage in code_stages(lock) for dep in lock["stages"][stage]["deps"]}
+    for name, entry in lock["stages"].items():  # stages that list source paths themselves (summarize, report)
+        for dep in entry.get("deps", []):
+            now = fresh.get(dep["path"]) or source_file_digest(dep["path"])
+            if now is not None and now["md5"] != dep["md5"]:
+                text = swap(text, digest_lines(dep), digest_lines(now))
+                print(f"{name}: {dep['path']}")
     LOCK.write_text(text)
+
+
+def source_file_digest(path: str) -> dict | None:
+    """A source file's digest as ``dvc.lock`` records it (md5 of its bytes, size), for a file of ``src/`` or
+    ``pipeline/`` inside a folder the code stages list whole; None for anything else (data are never relocked)."""
+    file = Path(path)
+    if not file.is_file() or file.parts[0] not in ("src", "pipeline"):
+        return None
+    data = file.read_bytes()
+    return {"md5": hashlib.md5(data).hexdigest(), "size": len(data)}
 
 
 if __name__ == "__main__":

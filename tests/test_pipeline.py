@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import shutil
 import subprocess
@@ -408,3 +409,17 @@ def test_failed_stage_marks_mlflow_run_failed(tmp_path: Path, monkeypatch: pytes
     assert client.get_run(run.data.tags["mlflow.parentRunId"]).info.status == "FAILED"  # the pipeline run too
     assert run.data.params == {"a.b": "1"} and run.data.tags["stage"] == "pretrain"
     mlflow.set_tracking_uri(None)
+
+
+def test_committed_lock_holds_the_digest_of_every_source_file_it_names() -> None:
+    """``dvc.lock``'s digest of each file of ``src/`` and ``pipeline/`` a stage lists is the file's own: a code change
+    recorded without rerunning (``scripts/relock_code.py``) left no stage believing older code."""
+    lock = yaml.safe_load((REPO / "dvc.lock").read_text())
+    stale = []
+    for name, entry in lock["stages"].items():
+        for dep in entry.get("deps", []):
+            file = REPO / dep["path"]
+            source = dep["path"].split("/")[0] in ("src", "pipeline") and file.is_file()
+            if source and hashlib.md5(file.read_bytes()).hexdigest() != dep["md5"]:
+                stale.append(f"{name}: {dep['path']}")
+    assert not stale, f"dvc.lock is stale (run scripts/relock_code.py): {stale}"
