@@ -122,8 +122,9 @@ def test_repro_runs_the_locomotion_baseline(smoke_repo: Path) -> None:
     assert (ref["r_min"], ref["r_max"]) == (-20.272305, 3234.3)
     assert {"random_score_mean", "behaviour_score_mean", "dataset"} <= set(ref)
     summary = json.loads((smoke_repo / "metrics/summary.json").read_text())[HOPPER]
-    assert set(summary) == {"dataset", "phase_0"}
+    assert set(summary) == {"reference", "dataset", "phase_0"}
     assert summary["dataset"]["score_mean"] == ref["dataset"]["score_mean"]
+    assert summary["reference"] == {"r_min": -20.272305, "r_max": 3234.3}  # D4RL's are ours: no second set
     phase0 = summary["phase_0"]
     assert phase0["n_episodes"] == 2 and 1 <= phase0["length_mean"] <= 40
     assert 0.0 <= phase0["terminated_rate"] <= 1.0

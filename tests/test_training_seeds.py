@@ -15,7 +15,7 @@ import yaml
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
-from adaptdiffuser.evaluation import standard_error
+from adaptdiffuser.evaluation import rescaled_difference, rescaled_score, standard_error
 from adaptdiffuser.layout import (
     SUMMARY,
     model_dir,
@@ -35,7 +35,7 @@ from adaptdiffuser.stages.finetune import run_finetune
 from adaptdiffuser.stages.generate import run_generate
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
-from adaptdiffuser.stages.report import run_report, seed_points, unseen_table
+from adaptdiffuser.stages.report import d4rl_table, run_report, seed_points, unseen_table
 from adaptdiffuser.stages.summarize import run_summarize
 
 REPO = Path(__file__).resolve().parents[1]
@@ -118,6 +118,9 @@ def test_metrics_are_aggregated_over_seeds(two_seeds: tuple[Path, Params]) -> No
 def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params], tmp_path: Path) -> None:
     root, params = two_seeds
     summary = run_summarize(params, root)[TASK]
+    reference = json.loads((root / f"metrics/tasks/{TASK}/reference.json").read_text())
+    assert summary["reference"] == {key: reference[key] for key in ("r_min", "r_max", "d4rl_r_min", "d4rl_r_max")}
+    assert (summary["reference"]["d4rl_r_min"], summary["reference"]["d4rl_r_max"]) == (23.85, 161.86)  # U-Maze's
     phase1 = summary["phase_1"]
     assert set(phase1["per_seed"]) == {"0", "3"} and "seeds" not in phase1
     assert phase1["control"]["n_seeds"] == 2
@@ -142,6 +145,41 @@ def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params], tmp_p
     again = tmp_path / "again"
     assert (again / report_plot_path(TASK)).stat().st_size > 0
     assert (again / score_table_path(TASK)).read_text() == (root / score_table_path(TASK)).read_text()
+
+
+def test_scores_are_tabled_on_d4rl_constants_where_the_task_gives_them() -> None:
+    """A score on our (R_min, R_max) is the same return normalized on D4RL's; gains and standard errors scale by the
+    ratio of the ranges; tasks without D4RL's constants (or without a reference) add no rows."""
+    # Maze2D Medium's reference: ours 16.10 / 447.64, D4RL's 13.13 / 277.39 (docs/maze2d.md)
+    ours, theirs = (16.10, 447.64), (13.13, 277.39)
+    assert rescaled_score(72.0, ours, theirs) == pytest.approx(118.70, abs=0.01)
+    assert rescaled_score(0.0, ours, theirs) == pytest.approx(100 * (16.10 - 13.13) / (277.39 - 13.13))
+    assert rescaled_difference(1.4, ours, theirs) == pytest.approx(1.4 * 431.54 / 264.26)
+    reference = {"r_min": 16.10, "r_max": 447.64, "d4rl_r_min": 13.13, "d4rl_r_max": 277.39}
+    summary = {
+        "maze": {
+            "reference": reference,
+            "phase_0": {"score_mean": 72.0, "score_stderr": 1.4},
+            "phase_1": {
+                "score_mean": 74.0,
+                "score_stderr": 1.0,
+                "control": {"score_mean": 73.0, "score_stderr": 0.5},
+                "gain_mean": 1.0,
+                "gain_stderr": 0.2,
+            },
+        },
+        "hopper": {"reference": {"r_min": -20.0, "r_max": 3234.0}, "phase_0": {"score_mean": 30.0}},
+        "older": {"phase_0": {"score_mean": 30.0}},
+    }
+    for entry in summary.values():
+        for phase in entry.values():
+            phase.setdefault("return_mean", 0.0)
+            phase.setdefault("n_episodes", 50)
+    assert d4rl_table(summary)[2:] == [
+        "| maze | 0 | 118.7 ± 2.3 |  |  |",
+        "| maze | 1 | 122.0 ± 1.6 | 120.3 ± 0.8 | 1.6 ± 0.3 |",
+    ]
+    assert d4rl_table({"hopper": summary["hopper"]}) == []
 
 
 def test_unseen_task_scores_are_tabled_against_the_control() -> None:

@@ -444,20 +444,21 @@ def gains(
     ] = None,
 ) -> None:
     """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error) as a
-    Markdown table; then the score on the unseen task (gold coin, pick-and-place), phase against control."""
+    Markdown table; then the same on D4RL's constants where the task gives them (Maze2D), and the score on the
+    unseen task (gold coin, pick-and-place), phase against control."""
     from adaptdiffuser.io import read_json
-    from adaptdiffuser.stages.report import gains_table, unseen_table
+    from adaptdiffuser.stages.report import d4rl_table, gains_table, unseen_table
 
     merged: dict = {}
     for path in summaries or [Path("metrics/summary.json")]:
         merged |= _guarded(lambda path=path: read_json(path, f"{path} (run the summarize stage)"))
     for line in gains_table(merged):
         typer.echo(line)
-    unseen = unseen_table(merged)
-    if unseen:
-        typer.echo("")
-        for line in unseen:
-            typer.echo(line)
+    for table in (d4rl_table(merged), unseen_table(merged)):
+        if table:
+            typer.echo("")
+            for line in table:
+                typer.echo(line)
 
 
 @app.command()

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from adaptdiffuser.evaluation import rescaled_difference, rescaled_score
 from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.layout import SUMMARY, report_plot_path, score_table_path
 from adaptdiffuser.plots import save_score_by_phase
@@ -99,6 +100,42 @@ def unseen_table(summary: dict) -> list[str]:
     if not lines:
         return []
     header = ["| task | phase | unseen task | score | control | difference |", "|---|---|---|---|---|---|"]
+    return header + lines
+
+
+def _on_constants(
+    mean: float | None, stderr: float | None, ours: tuple[float, float], theirs: tuple[float, float], score: bool
+) -> str:
+    """``mean ± stderr`` of our constants on ``theirs``: a score (``score``) or a difference of scores."""
+    if mean is None:
+        return ""
+    value = rescaled_score(mean, ours, theirs) if score else rescaled_difference(mean, ours, theirs)
+    return _pm(value, rescaled_difference(stderr or 0.0, ours, theirs))
+
+
+def d4rl_table(summary: dict) -> list[str]:
+    """A Markdown table of every task whose summary gives D4RL's constants beside ours (``reference``): each phase's
+    score, its control's and the gain, read on D4RL's constants (the same returns normalized again; gains and
+    standard errors scale by the ratio of the ranges). Empty when no task gives them."""
+    lines = []
+    for task, task_summary in summary.items():
+        ref = task_summary.get("reference", {})
+        if "d4rl_r_min" not in ref:
+            continue
+        ours, theirs = (ref["r_min"], ref["r_max"]), (ref["d4rl_r_min"], ref["d4rl_r_max"])
+        for row in score_table(task_summary):
+            cells = (
+                _on_constants(row["score_mean"], row["score_stderr"], ours, theirs, score=True),
+                _on_constants(row["control_score_mean"], row["control_score_stderr"], ours, theirs, score=True),
+                _on_constants(row["gain_mean"], row["gain_stderr"], ours, theirs, score=False),
+            )
+            lines.append(f"| {task} | {row['phase']} | " + " | ".join(cells) + " |")
+    if not lines:
+        return []
+    header = [
+        "| task | phase | score on D4RL's constants | control | gain over control |",
+        "|---|---|---|---|---|",
+    ]
     return header + lines
 
 

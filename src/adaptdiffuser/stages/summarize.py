@@ -23,6 +23,8 @@ from adaptdiffuser.tooling.mlflow_logging import set_best_alias, stage_run
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept")
 GAIN_KEYS = ("gain_mean", "gain_stderr")
 PER_SEED_KEYS = ("score_mean", "score_stderr", "gain_mean", "gain_stderr")
+#: what 0 and 100 of the score mean, and other constants to read it on where the reference gives them (D4RL's)
+REFERENCE_KEYS = ("r_min", "r_max", "d4rl_r_min", "d4rl_r_max")
 
 
 def _without_seeds(metrics: dict) -> dict:
@@ -54,12 +56,13 @@ def task_phases(params: Params, task: str) -> list[int]:
 
 
 def run_summarize(params: Params, root: Path) -> dict:
-    """``{task: {"dataset": {...}?, "unseen_task"?, "phase_k": {score_mean, score_stderr, ..., gain_mean?,
-    gain_stderr?, <unseen task>?, "control"?, "discriminator"?, "per_seed"}}}``: each phase's evaluation metrics;
-    for tasks of ``unseen_tasks``, the name of their family's unseen task (``gold_coin``, ``pick_place``) and each
-    phase's (and control's) metrics on it under that name; for evolution phases the discriminator counts, the
-    equal-compute control's metrics and the gain of the phase over it; and the dataset's own score where the
-    reference stage measured it.
+    """``{task: {"reference": {...}, "dataset": {...}?, "unseen_task"?, "phase_k": {score_mean, score_stderr, ...,
+    gain_mean?, gain_stderr?, <unseen task>?, "control"?, "discriminator"?, "per_seed"}}}``: each phase's
+    evaluation metrics; the task's reference constants (``reference``: R_min, R_max, and D4RL's where the family
+    gives them); for tasks of ``unseen_tasks``, the name of their family's unseen task (``gold_coin``,
+    ``pick_place``) and each phase's (and control's) metrics on it under that name; for evolution phases the
+    discriminator counts, the equal-compute control's metrics and the gain of the phase over it; and the dataset's
+    own score where the reference stage measured it.
 
     Means and standard errors are over training seeds (over episodes with one seed: ``stderr_over``); the
     discriminator counts are means over seeds; ``per_seed`` has each seed's score and gain."""
@@ -67,6 +70,7 @@ def run_summarize(params: Params, root: Path) -> dict:
     for task in params.tasks:
         entry: dict[str, Any] = {}
         ref = read_json(root / reference_path(task), f"reference of {task} (run reference@{task})")
+        entry["reference"] = {key: ref[key] for key in REFERENCE_KEYS if key in ref}
         if "dataset" in ref:
             entry["dataset"] = ref["dataset"]
         unseen = unseen_task_of(params.task[task]) if task in params.unseen_tasks else None

@@ -147,9 +147,9 @@ def judge_navigation_data(
 
 
 def with_coin_tasks(judgement: Judgement, tasks: NavigationTasks, radius: float, must_end_at_goal: bool) -> Judgement:
-    """``judgement`` (of the navigation tasks) with the coin tasks that passed tracking and picked their coin (within
-    ``radius``) before reaching the goal added to what it keeps (and, with ``must_end_at_goal``, end there), and
-    ``coin_generated`` / ``coin_kept`` in its report."""
+    """``judgement`` (of the navigation tasks) keeping also the coin tasks that passed tracking, picked their coin
+    (within ``radius``) before reaching the goal and, with ``must_end_at_goal``, end at the goal; its report gains
+    ``coin_generated`` and ``coin_kept``."""
     coin = tasks.has_coin()
     picked = [
         i
