@@ -56,7 +56,8 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
     summary = json.loads((smoke_repo / "metrics/summary.json").read_text())
     assert set(summary) == {MAZE, HOPPER, KUKA}
     maze = summary[MAZE]
-    assert set(maze) == {"unseen_task", "phase_0", "phase_1", "phase_2"} and maze["unseen_task"] == "gold_coin"
+    assert set(maze) == {"reference", "unseen_task", "phase_0", "phase_1", "phase_2"}
+    assert maze["unseen_task"] == "gold_coin" and {"d4rl_r_min", "d4rl_r_max"} <= set(maze["reference"])
     for k in (0, 1, 2):
         entry = maze[f"phase_{k}"]
         for coin in [entry["gold_coin"]] + ([entry["control"]["gold_coin"]] if k else []):  # phase and control

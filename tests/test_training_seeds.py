@@ -15,7 +15,7 @@ import yaml
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
-from adaptdiffuser.evaluation import rescaled_difference, rescaled_score, standard_error
+from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.layout import (
     SUMMARY,
     model_dir,
@@ -35,7 +35,14 @@ from adaptdiffuser.stages.finetune import run_finetune
 from adaptdiffuser.stages.generate import run_generate
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
-from adaptdiffuser.stages.report import d4rl_table, run_report, seed_points, unseen_table
+from adaptdiffuser.stages.report import (
+    d4rl_table,
+    rescaled_difference,
+    rescaled_score,
+    run_report,
+    seed_points,
+    unseen_table,
+)
 from adaptdiffuser.stages.summarize import run_summarize
 
 REPO = Path(__file__).resolve().parents[1]

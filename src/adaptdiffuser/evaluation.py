@@ -25,19 +25,6 @@ def normalized_score(returns: np.ndarray | float, r_min: float, r_max: float) ->
     return 100.0 * (np.asarray(returns, dtype=np.float64) - r_min) / (r_max - r_min)
 
 
-def rescaled_score(score: float, ours: tuple[float, float], theirs: tuple[float, float]) -> float:
-    """A normalized score on our ``(R_min, R_max)`` expressed on other constants ``theirs`` (such as D4RL's): the
-    same return, normalized again. Differences and standard errors scale by the ratio of the ranges alone
-    (:func:`rescaled_difference`)."""
-    r_min, r_max = ours
-    return float(normalized_score(r_min + score / 100.0 * (r_max - r_min), *theirs))
-
-
-def rescaled_difference(difference: float, ours: tuple[float, float], theirs: tuple[float, float]) -> float:
-    """A difference of normalized scores (a gain, a standard error) on our constants, on ``theirs``."""
-    return difference * (ours[1] - ours[0]) / (theirs[1] - theirs[0])
-
-
 def standard_error(values: np.ndarray | list[float]) -> float:
     """Standard error of the mean (sample standard deviation / sqrt(n)); 0 for fewer than two values."""
     values = np.asarray(values, dtype=np.float64)

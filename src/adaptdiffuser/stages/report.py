@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 
-from adaptdiffuser.evaluation import rescaled_difference, rescaled_score
 from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.layout import SUMMARY, report_plot_path, score_table_path
 from adaptdiffuser.plots import save_score_by_phase
@@ -101,6 +100,20 @@ def unseen_table(summary: dict) -> list[str]:
         return []
     header = ["| task | phase | unseen task | score | control | difference |", "|---|---|---|---|---|---|"]
     return header + lines
+
+
+def rescaled_score(score: float, ours: tuple[float, float], theirs: tuple[float, float]) -> float:
+    """A normalized score on our ``(R_min, R_max)`` expressed on other constants ``theirs`` (such as D4RL's): the
+    same return, normalized again. Differences and standard errors scale by the ratio of the ranges alone
+    (:func:`rescaled_difference`)."""
+    r_min, r_max = ours
+    other_min, other_max = theirs
+    return 100.0 * (r_min + score / 100.0 * (r_max - r_min) - other_min) / (other_max - other_min)
+
+
+def rescaled_difference(difference: float, ours: tuple[float, float], theirs: tuple[float, float]) -> float:
+    """A difference of normalized scores (a gain, a standard error) on our constants, on ``theirs``."""
+    return difference * (ours[1] - ours[0]) / (theirs[1] - theirs[0])
 
 
 def _on_constants(
