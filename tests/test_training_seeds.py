@@ -28,6 +28,7 @@ from adaptdiffuser.layout import (
 from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.collect import run_collect
+from adaptdiffuser.stages.common import phase_entries
 from adaptdiffuser.stages.discriminate import run_discriminate
 from adaptdiffuser.stages.evaluate import run_evaluate
 from adaptdiffuser.stages.evaluate_unseen import run_evaluate_unseen
@@ -179,7 +180,7 @@ def test_scores_are_tabled_on_d4rl_constants_where_the_task_gives_them() -> None
         "older": {"phase_0": {"score_mean": 30.0}},
     }
     for entry in summary.values():
-        for phase in entry.values():
+        for _, phase in phase_entries(entry):  # the fields every phase entry has
             phase.setdefault("return_mean", 0.0)
             phase.setdefault("n_episodes", 50)
     assert d4rl_table(summary)[2:] == [
