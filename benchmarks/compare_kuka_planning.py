@@ -47,6 +47,12 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pinned, DDPM (every diffusion step)": {"planning.pin_resting_blocks": True, "planner.sampler": "ddpm"},
     "suction at any distance": {"control.suction_reach": 10.0},
     "pinned, suction at any distance": {"planning.pin_resting_blocks": True, "control.suction_reach": 10.0},
+    "pinned, following the blocks": {"planning.pin_resting_blocks": True, "planning.follow_blocks": True},
+    "pinned, following the blocks, replan every 32": {
+        "planning.pin_resting_blocks": True,
+        "planning.follow_blocks": True,
+        "planning.replan_every": 32,
+    },
 }
 
 

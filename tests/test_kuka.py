@@ -17,9 +17,17 @@ from adaptdiffuser.families.kuka.demonstrator import (
     record_demonstration,
 )
 from adaptdiffuser.families.kuka.evolution import SETUP_COLUMN, MinReturnRule, judge_episodes, within_range
-from adaptdiffuser.families.kuka.execution import PlaceObjective, plan_commands
-from adaptdiffuser.families.kuka.params import KukaTaskParams
-from adaptdiffuser.families.kuka.scene import BLOCK_HALF, FLAG_COLUMNS, N_JOINTS, OBS_DIM, block_position_columns
+from adaptdiffuser.families.kuka.execution import PlaceObjective, commands_following_blocks, plan_commands
+from adaptdiffuser.families.kuka.params import ControlSettings, KukaTaskParams
+from adaptdiffuser.families.kuka.scene import (
+    BLOCK_HALF,
+    FLAG_COLUMNS,
+    HOME_JOINTS,
+    N_JOINTS,
+    OBS_DIM,
+    block_position_columns,
+    covered_blocks,
+)
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 from adaptdiffuser.families.kuka.tasks import (
     PLACE_TARGETS,
@@ -85,6 +93,59 @@ def test_suction_needs_the_block_within_reach(sim: KukaSimulator) -> None:
     obs = move_cup(sim, far, np.array([1.0, 1.0, 1.0, 1.0]))
     assert not block_flags(obs).any()
     assert np.allclose(block_positions(obs)[:, 2], BLOCK_HALF[2], atol=2e-3)
+
+
+def settled_tower(sim: KukaSimulator, seed: int = 3) -> np.ndarray:
+    """Start ``sim`` with the four blocks in one tower and let it settle; the observation."""
+    obs = sim.start(HOME_JOINTS, tower_blocks(np.random.default_rng(seed), (0.35, 0.6)))
+    for _ in range(20):
+        obs = sim.step(np.concatenate([obs[:N_JOINTS], np.zeros(4)])).observation
+    return obs
+
+
+def test_covered_blocks_are_those_with_a_block_on_them() -> None:
+    tower = tower_blocks(np.random.default_rng(0), (0.35, 0.6))[:, :3]
+    assert covered_blocks(tower).tolist() == [True, True, True, False]
+    side_by_side = tower.copy()
+    side_by_side[3, 0] += 0.25  # the top block beside the tower, still high: it covers nothing now
+    assert covered_blocks(side_by_side).tolist() == [True, True, False, False]
+
+
+@pytest.mark.parametrize("free_top_only", [False, True])
+def test_with_free_tops_the_cup_takes_no_block_from_under_another(free_top_only: bool) -> None:
+    sim = KukaSimulator(KukaTaskParams(control=ControlSettings(free_top_only=free_top_only)))
+    obs = settled_tower(sim)
+    top = block_positions(obs)[3] + np.array([0.0, 0.0, BLOCK_HALF[2] + 0.005])  # on the tower's top block
+    obs = move_cup(sim, top + [0, 0, 0.2], np.zeros(4))
+    obs = move_cup(sim, top, np.array([0.0, 0.0, 1.0, 0.0]))  # asks for block 2, under block 3 but within reach
+    sim.close()
+    assert block_flags(obs)[2] == (0.0 if free_top_only else 1.0)
+
+
+def test_following_the_blocks_takes_the_real_block_and_carries_it_where_the_plan_does(sim: KukaSimulator) -> None:
+    obs = sim.reset(np.random.default_rng(4))
+    planned = obs.copy()
+    planned[:N_JOINTS] = HOME_JOINTS  # planned joints that would leave the cup where it is
+    where = block_position_columns(2)
+    planned[where] += [0.3, 0.0, 0.0]  # an imagined block 2, away from the real one
+    planned[FLAG_COLUMNS[2]] = 1.0
+    np.testing.assert_array_equal(commands_following_blocks([sim.scene], obs[None], obs[None])[0], plan_commands(obs))
+    for _ in range(40):
+        obs = sim.step(commands_following_blocks([sim.scene], obs[None], planned[None])[0]).observation
+    assert block_flags(obs).tolist() == [0.0, 0.0, 1.0, 0.0]  # the cup went to the real block and took it
+    planned[where] = block_positions(obs)[2] + [0.0, 0.1, 0.25]  # the plan carries it up and aside
+    for _ in range(40):
+        obs = sim.step(commands_following_blocks([sim.scene], obs[None], planned[None])[0]).observation
+    np.testing.assert_allclose(block_positions(obs)[2], planned[where], atol=0.02)
+
+
+def test_following_the_blocks_leaves_a_covered_block_to_the_planned_joints(sim: KukaSimulator) -> None:
+    obs = settled_tower(sim)
+    planned = obs.copy()
+    planned[FLAG_COLUMNS[1]] = 1.0  # block 1 is under blocks 2 and 3
+    np.testing.assert_array_equal(
+        commands_following_blocks([sim.scene], obs[None], planned[None])[0], plan_commands(planned)
+    )
 
 
 def test_stacked_and_placed_counts_with_real_physics(sim: KukaSimulator) -> None:

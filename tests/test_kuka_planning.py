@@ -169,7 +169,7 @@ def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(
         kuka_raw(
             {
                 "diffusion.horizon": HORIZON,
-                "planning": {"pin_resting_blocks": True, "replan_every": 5},
+                "planning": {"pin_resting_blocks": True, "replan_every": 5, "follow_blocks": True},
                 "pick_place": {"setups": [1], "episodes": 1, "batch_size": 1},
             },
             tmp_path,
@@ -177,7 +177,7 @@ def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(
     ).resolve("kuka-stacking")
     family = get_family("kuka")
     controller = family.controller(task, planner, None, planner.device)
-    assert controller.every == 5 and controller.project is not None
+    assert controller.every == 5 and controller.project is not None and controller.follow_blocks
     planner.clear()
     family.evaluate_unseen(task, planner, 1.0, {}, 0, "", False)
     plans_per_episode = task.settings.pick_place.replans * (HORIZON - 1) // 5

@@ -21,7 +21,12 @@ from adaptdiffuser.data.schema import SchemaError, Trajectories
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.evolution.discriminator import SelectionRule, generic_selection_rule, passes_tracking, select
 from adaptdiffuser.families.kuka.dataset import state_episodes
-from adaptdiffuser.families.kuka.execution import place_guidance, plan_commands, task_controller
+from adaptdiffuser.families.kuka.execution import (
+    commands_following_blocks,
+    place_guidance,
+    plan_commands,
+    task_controller,
+)
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 from adaptdiffuser.seeding import derive_seed
 
@@ -94,17 +99,23 @@ def generate_episodes(
     return traj, {"generated": cfg.tasks, "placed_mean_while_generating": float(np.mean(placed))}
 
 
-def execute_plan(sim: KukaSimulator, planned: np.ndarray) -> TrackedTrajectory:
-    """Execute planned states ``[T + 1, 39]`` open loop from ``planned[0]``: the executed observations, the L2
-    distance of each executed state's joints and flags from the planned ones, and the reward of each step (the
-    change in blocks placed; the first entry, for the start, is 0)."""
+def execute_plan(sim: KukaSimulator, planned: np.ndarray, follow_blocks: bool = False) -> TrackedTrajectory:
+    """Execute planned states ``[T + 1, 39]`` open loop from ``planned[0]`` (by the blocks where ``follow_blocks``,
+    as :func:`commands_following_blocks`): the executed observations, the L2 distance of each executed state's
+    joints and flags from the planned ones, and the reward of each step (the change in blocks placed; the first
+    entry, for the start, is 0)."""
     obs = sim.set_state(planned[0])
     observations, errors, rewards = [obs], [], [0.0]
-    commands = plan_commands(planned)
+    planned_commands = plan_commands(planned)
     for t in range(1, len(planned)):
-        step = sim.step(commands[t])
-        observations.append(step.observation)
-        errors.append(float(np.linalg.norm(plan_commands(step.observation) - commands[t])))
+        if follow_blocks:
+            command = commands_following_blocks([sim.scene], obs[None], planned[t][None])[0]
+        else:
+            command = planned_commands[t]
+        step = sim.step(command)
+        obs = step.observation
+        observations.append(obs)
+        errors.append(float(np.linalg.norm(plan_commands(obs) - planned_commands[t])))
         rewards.append(step.reward)
     return TrackedTrajectory(
         observations=np.asarray(observations),
@@ -147,7 +158,8 @@ def judge_episodes(
         setup = int(generated.extra[SETUP_COLUMN][episode.start])
         if setup not in sims:
             sims[setup] = make_simulator(task, "pick_place", setup)
-        judged.append(execute_plan(sims[setup], generated.observation[episode].astype(np.float64)))
+        sim, planned = sims[setup], generated.observation[episode].astype(np.float64)
+        judged.append(execute_plan(sim, planned, sim.settings.planning.follow_blocks))
     for sim in sims.values():
         sim.close()
     low, high = expert.min(axis=0), expert.max(axis=0)

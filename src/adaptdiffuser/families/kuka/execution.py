@@ -12,8 +12,17 @@ import torch
 from adaptdiffuser.contract import Controller
 from adaptdiffuser.diffusion.conditions import Projection
 from adaptdiffuser.diffusion.guidance import GuidanceBase, Objective
-from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_BLOCKS, N_JOINTS, OBS_DIM, block_position_columns
-from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS
+from adaptdiffuser.families.kuka.scene import (
+    BLOCK_HALF,
+    FLAG_COLUMNS,
+    N_BLOCKS,
+    N_JOINTS,
+    OBS_DIM,
+    KukaScene,
+    block_position_columns,
+    covered_blocks,
+)
+from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS, block_positions
 from adaptdiffuser.seeding import derive_seed
 
 if TYPE_CHECKING:
@@ -24,6 +33,29 @@ if TYPE_CHECKING:
 def plan_commands(plan_states: np.ndarray) -> np.ndarray:
     """The commands ``[..., 11]`` (7 joint targets, 4 suction flags) that reach planned states ``[..., 39]``."""
     return np.concatenate([plan_states[..., :N_JOINTS], plan_states[..., list(FLAG_COLUMNS)]], axis=-1)
+
+
+def commands_following_blocks(scenes: Sequence[KukaScene], obs: np.ndarray, planned: np.ndarray) -> np.ndarray:
+    """The commands ``[n, 11]`` toward planned states ``[n, 39]`` from observations ``[n, 39]`` when the arm follows
+    the blocks (``planning.follow_blocks``): where a planned state holds block ``b`` (its flag the highest one on),
+    the joints come from inverse kinematics, putting the cup on the real block's top until the cup holds ``b``, then
+    where the plan carries ``b`` (at the offset the cup really holds it by); elsewhere, and while ``b`` has another
+    block on it, the planned joints."""
+    commands = plan_commands(planned)
+    top = np.array([0.0, 0.0, BLOCK_HALF[2]])
+    for i, (scene, o, s) in enumerate(zip(scenes, obs, planned, strict=True)):
+        flags = s[list(FLAG_COLUMNS)]
+        if flags.max() <= 0.5:
+            continue
+        b = int(np.argmax(flags))
+        where = block_position_columns(b)
+        held = o[FLAG_COLUMNS[b]] > 0.5
+        if not held and covered_blocks(block_positions(o))[b]:
+            continue
+        # held: carry it where the plan does; not yet held: go to where it really is
+        target = s[where] + (scene.cup()[0] - o[where]) if held else o[where] + top
+        commands[i, :N_JOINTS] = scene.inverse_kinematics(target, rest=s[:N_JOINTS])
+    return commands
 
 
 class PlaceObjective(Objective):
@@ -73,7 +105,8 @@ class ReplanningController(Controller):
     step; replans every ``replan_every`` steps (default ``horizon - 1``, the whole plan, so ``replans`` plans fill an
     episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, o, n)`` gives the guidance
     of a plan drawn ``o`` steps into the ``k``-th stretch of ``horizon - 1`` steps, for ``n`` episodes (or None);
-    each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given. With ``record``,
+    each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given; with ``follow_blocks``
+    the arm is commanded by :func:`commands_following_blocks` instead of the planned joints. With ``record``,
     :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the state each step was
     commanded to reach), episodes in the order they ran."""
 
@@ -85,6 +118,7 @@ class ReplanningController(Controller):
         record: bool = False,
         project: Projection | None = None,
         replan_every: int | None = None,
+        follow_blocks: bool = False,
     ) -> None:
         self.planner = planner
         self.seed = seed
@@ -94,6 +128,7 @@ class ReplanningController(Controller):
         if not 0 < self.every <= self.span:
             raise ValueError(f"replan_every must be in [1, {self.span}] (horizon - 1), got {replan_every}")
         self.project = project
+        self.follow_blocks = follow_blocks
         self.record = record
         self._rows: list[list[np.ndarray]] = []
 
@@ -123,6 +158,8 @@ class ReplanningController(Controller):
         if self.record:
             for i, state in enumerate(commanded):
                 self._rows[self.batch_start + i].append(state.copy())
+        if self.follow_blocks:
+            return commands_following_blocks([env.scene for env in envs], obs, commanded)
         return plan_commands(commanded)
 
 
@@ -147,4 +184,4 @@ def task_controller(
     """The controller of a KUKA task's plans, as its ``planning`` settings say (every evaluation and generation)."""
     p = task.settings.planning
     project = resting_blocks_pinned(planner) if p.pin_resting_blocks else None
-    return ReplanningController(planner, seed, guidance, record, project, p.replan_every)
+    return ReplanningController(planner, seed, guidance, record, project, p.replan_every, p.follow_blocks)

@@ -52,6 +52,8 @@ class ControlSettings(BaseModel):
     joint_force: float = Field(300.0, gt=0)
     #: the cup takes a block only when the block's top is within this distance of it (metres)
     suction_reach: float = Field(0.1, gt=0)
+    #: the cup cannot take a block with another block on it (its top is covered)
+    free_top_only: bool = False
 
 
 class DemonstratorSettings(BaseModel):
@@ -80,6 +82,10 @@ class PlanningSettings(BaseModel):
     #: plan again after this many executed steps (null: after horizon - 1, the whole plan); the episode keeps its
     #: length, and pick-and-place still guides block ``k mod 4`` over the k-th stretch of horizon - 1 steps
     replan_every: int | None = Field(None, gt=0)
+    #: execute by the blocks instead of the planned joints while the plan holds a block (its flag on): the cup is
+    #: sent by inverse kinematics to the real block's top until it holds it, then carries it where the plan carries
+    #: it; steps that hold nothing follow the planned joints. The plan says where blocks go, the scene where they are
+    follow_blocks: bool = False
 
 
 class CollectSettings(BaseModel):

@@ -37,6 +37,15 @@ def block_position_columns(i: int) -> slice:
     return slice(start, start + 3)
 
 
+def covered_blocks(positions: np.ndarray) -> np.ndarray:
+    """``[4]`` bool: which of the blocks with centres ``[4, 3]`` carry another block (its centre within a block's
+    width in xy and more than half a block's height higher), so that their top is out of the cup's reach."""
+    offset = positions[None, :, :] - positions[:, None, :]  # [i, j]: block j relative to block i
+    near = np.linalg.norm(offset[..., :2], axis=-1) < 2 * BLOCK_HALF[0]
+    np.fill_diagonal(near, False)
+    return (near & (offset[..., 2] > BLOCK_HALF[2])).any(axis=1)
+
+
 @contextlib.contextmanager
 def _silent_output() -> Iterator[None]:
     """Drop what PyBullet's C code prints at import and connection (its build time, ``argv[0]=``); Python
@@ -59,7 +68,13 @@ def _silent_output() -> Iterator[None]:
 class KukaScene:
     """One PyBullet world (its own ``DIRECT`` client)."""
 
-    def __init__(self, joint_force: float = 300.0, position_gain: float = 0.3, suction_reach: float = 0.1) -> None:
+    def __init__(
+        self,
+        joint_force: float = 300.0,
+        position_gain: float = 0.3,
+        suction_reach: float = 0.1,
+        free_top_only: bool = False,
+    ) -> None:
         with _silent_output():
             import pybullet as pb
             import pybullet_data
@@ -71,6 +86,7 @@ class KukaScene:
         self.joint_force = joint_force
         self.position_gain = position_gain
         self.suction_reach = suction_reach
+        self.free_top_only = free_top_only
         self.constraints: list[int | None] = [None] * N_BLOCKS
 
     def build(self, joints: np.ndarray, blocks: np.ndarray) -> np.ndarray:
@@ -120,8 +136,9 @@ class KukaScene:
         return self._cup_of(pos, quat), quat
 
     def set_suction(self, flags: np.ndarray) -> None:
-        """Attach each block whose flag is > 0.5 (if not held yet and within reach of the cup), release the others.
-        One block at most is held: with several flags on, the nearest in reach is taken."""
+        """Attach each block whose flag is > 0.5 (if not held yet and within reach of the cup, and, with
+        ``free_top_only``, not under another block), release the others. One block at most is held: with several
+        flags on, the nearest in reach is taken."""
         c, pb = self.client, self.pb
         want = np.asarray(flags) > 0.5
         for i in np.flatnonzero(~want):
@@ -132,10 +149,12 @@ class KukaScene:
             return
         flange_pos, flange_quat = self._flange()
         cup = self._cup_of(flange_pos, flange_quat)
+        positions = np.array([c.getBasePositionAndOrientation(body)[0] for body in self.blocks])
+        if self.free_top_only:
+            want &= ~covered_blocks(positions)
         best, best_dist = None, self.suction_reach
         for i in np.flatnonzero(want):
-            pos, _ = c.getBasePositionAndOrientation(self.blocks[i])
-            top = np.asarray(pos) + np.array([0.0, 0.0, BLOCK_HALF[2]])
+            top = positions[i] + np.array([0.0, 0.0, BLOCK_HALF[2]])
             dist = float(np.linalg.norm(top - cup))
             if dist <= best_dist:
                 best, best_dist = i, dist
