@@ -16,7 +16,13 @@ from adaptdiffuser.families.kuka.demonstrator import (
     collect_demonstrations,
     record_demonstration,
 )
-from adaptdiffuser.families.kuka.evolution import SETUP_COLUMN, MinReturnRule, judge_episodes, within_range
+from adaptdiffuser.families.kuka.evolution import (
+    SETUP_COLUMN,
+    MinReturnRule,
+    execute_plan,
+    judge_episodes,
+    within_range,
+)
 from adaptdiffuser.families.kuka.execution import PlaceObjective, commands_following_blocks, plan_commands
 from adaptdiffuser.families.kuka.params import ControlSettings, KukaTaskParams
 from adaptdiffuser.families.kuka.scene import (
@@ -286,6 +292,24 @@ def test_discriminator_executes_plans_and_rejects_what_the_simulator_cannot_do()
         judged = judge_episodes(simulator, None, _as_generated([demo]), cfg, before_lift, excess, progress=False)
         assert judged.passed_tracking.tolist() == passed
     assert MinReturnRule(1.5).select(np.array([1.0, 2.0, 4.0, 1.5]), np.ones(4)).tolist() == [2, 1]
+
+
+def test_following_execution_tracks_the_carried_block_not_the_joints() -> None:
+    """Executed by the blocks, a demonstration tracks; planned joints that go astray while a block is carried do not
+    matter there (the joints are not aimed at), but fail the plain execution; a carried block that jumps fails."""
+    sim = KukaSimulator(SETTINGS, episode_steps=1000)
+    demo = record_demonstration(sim, np.random.default_rng([9, 0]), SETTINGS)
+    holding = np.flatnonzero(block_flags(demo).max(axis=1) > 0.5)
+    assert execute_plan(sim, demo, follow_blocks=True).max_error < 0.2
+    astray = demo.copy()
+    astray[holding, 0] += 2.0  # the base joint 2 rad off while carrying
+    assert execute_plan(sim, astray, follow_blocks=True).max_error < 0.2
+    assert execute_plan(sim, astray).max_error > 1.02
+    jump = demo.copy()
+    carried = int(np.argmax(block_flags(demo[holding[5]])))
+    jump[holding[5] :, block_position_columns(carried)] += [1.5, 0.0, 0.0]
+    assert execute_plan(sim, jump, follow_blocks=True).max_error > 1.02
+    sim.close()
 
 
 @pytest.mark.e2e

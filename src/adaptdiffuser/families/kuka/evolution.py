@@ -27,6 +27,7 @@ from adaptdiffuser.families.kuka.execution import (
     plan_commands,
     task_controller,
 )
+from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_JOINTS, block_position_columns
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 from adaptdiffuser.seeding import derive_seed
 
@@ -99,11 +100,23 @@ def generate_episodes(
     return traj, {"generated": cfg.tasks, "placed_mean_while_generating": float(np.mean(placed))}
 
 
+def tracking_error(executed: np.ndarray, planned: np.ndarray, follow_blocks: bool = False) -> float:
+    """How far an executed state ``[39]`` is from the planned one: the L2 distance of the flags and of what the
+    execution aims at, the joints (radians), or, when ``follow_blocks`` and the planned state holds a block (its flag
+    the highest one on), that block's centre (metres)."""
+    flags = list(FLAG_COLUMNS)
+    if follow_blocks and planned[flags].max() > 0.5:
+        aimed = block_position_columns(int(np.argmax(planned[flags])))
+    else:
+        aimed = slice(0, N_JOINTS)
+    return float(np.linalg.norm(np.concatenate([executed[aimed] - planned[aimed], executed[flags] - planned[flags]])))
+
+
 def execute_plan(sim: KukaSimulator, planned: np.ndarray, follow_blocks: bool = False) -> TrackedTrajectory:
     """Execute planned states ``[T + 1, 39]`` open loop from ``planned[0]`` (by the blocks where ``follow_blocks``,
-    as :func:`commands_following_blocks`): the executed observations, the L2 distance of each executed state's
-    joints and flags from the planned ones, and the reward of each step (the change in blocks placed; the first
-    entry, for the start, is 0)."""
+    as :func:`commands_following_blocks`): the executed observations, each executed state's
+    :func:`tracking_error`, and the reward of each step (the change in blocks placed; the first entry, for the
+    start, is 0)."""
     obs = sim.set_state(planned[0])
     observations, errors, rewards = [obs], [], [0.0]
     planned_commands = plan_commands(planned)
@@ -115,7 +128,7 @@ def execute_plan(sim: KukaSimulator, planned: np.ndarray, follow_blocks: bool = 
         step = sim.step(command)
         obs = step.observation
         observations.append(obs)
-        errors.append(float(np.linalg.norm(plan_commands(obs) - planned_commands[t])))
+        errors.append(tracking_error(obs, planned[t], follow_blocks))
         rewards.append(step.reward)
     return TrackedTrajectory(
         observations=np.asarray(observations),
