@@ -7,9 +7,11 @@ is, resting blocks pinned to their real poses until the plan picks them up (``pl
 replanning every 32 or 16 steps (``planning.replan_every``), both together, pinned with the full DDPM chain
 (inpainting has every step to pull the arm to the blocks), and the reference's suction, which
 takes a block at any distance (``control.suction_reach`` 10 m; the reference attaches whatever block the plan's
-flag names, where it is, see docs/kuka.md). Per variant: the stacking score (mean +- standard error over episodes),
-the blocks the cup held at some step of an episode (mean), the share of full towers, the CPU seconds, and the
-gain over the first variant paired per episode (same seeds, same starts).
+flag names, where it is, see docs/kuka.md), and the arm sent to the planned joints instead of following the real
+blocks (``planning.follow_blocks`` false; quick-kuka follows them), with or without ``control.free_top_only``.
+Per variant: the stacking score (mean +- standard error over episodes), the blocks the cup held at some step of an
+episode (mean), the share of full towers, the CPU seconds, and the gain over the first variant paired per episode
+(same seeds, same starts).
 
     python benchmarks/compare_kuka_planning.py WORKSPACE [--seed 7] [--episodes 20] [--phase 0] [--training-seed 0]
         [--variants FILE.yaml] [--pick-place] [--out FILE.json]
@@ -47,12 +49,8 @@ VARIANTS: dict[str, dict[str, Any]] = {
     "pinned, DDPM (every diffusion step)": {"planning.pin_resting_blocks": True, "planner.sampler": "ddpm"},
     "suction at any distance": {"control.suction_reach": 10.0},
     "pinned, suction at any distance": {"planning.pin_resting_blocks": True, "control.suction_reach": 10.0},
-    "pinned, following the blocks": {"planning.pin_resting_blocks": True, "planning.follow_blocks": True},
-    "pinned, following the blocks, replan every 32": {
-        "planning.pin_resting_blocks": True,
-        "planning.follow_blocks": True,
-        "planning.replan_every": 32,
-    },
+    "the planned joints (not following the blocks)": {"planning.follow_blocks": False},
+    "the planned joints, any top": {"planning.follow_blocks": False, "control.free_top_only": False},
 }
 
 

@@ -23,6 +23,7 @@ from adaptdiffuser.evolution.discriminator import SelectionRule, generic_selecti
 from adaptdiffuser.families.kuka.dataset import state_episodes
 from adaptdiffuser.families.kuka.execution import (
     commands_following_blocks,
+    held_block,
     place_guidance,
     plan_commands,
     task_controller,
@@ -102,13 +103,10 @@ def generate_episodes(
 
 def tracking_error(executed: np.ndarray, planned: np.ndarray, follow_blocks: bool = False) -> float:
     """How far an executed state ``[39]`` is from the planned one: the L2 distance of the flags and of what the
-    execution aims at, the joints (radians), or, when ``follow_blocks`` and the planned state holds a block (its flag
-    the highest one on), that block's centre (metres)."""
-    flags = list(FLAG_COLUMNS)
-    if follow_blocks and planned[flags].max() > 0.5:
-        aimed = block_position_columns(int(np.argmax(planned[flags])))
-    else:
-        aimed = slice(0, N_JOINTS)
+    execution aims at, the joints (radians), or, when ``follow_blocks`` and the planned state holds a block
+    (:func:`held_block`), that block's centre (metres)."""
+    flags, block = list(FLAG_COLUMNS), held_block(planned) if follow_blocks else None
+    aimed = slice(0, N_JOINTS) if block is None else block_position_columns(block)
     return float(np.linalg.norm(np.concatenate([executed[aimed] - planned[aimed], executed[flags] - planned[flags]])))
 
 
@@ -119,12 +117,11 @@ def execute_plan(sim: KukaSimulator, planned: np.ndarray, follow_blocks: bool = 
     start, is 0)."""
     obs = sim.set_state(planned[0])
     observations, errors, rewards = [obs], [], [0.0]
-    planned_commands = plan_commands(planned)
     for t in range(1, len(planned)):
         if follow_blocks:
             command = commands_following_blocks([sim.scene], obs[None], planned[t][None])[0]
         else:
-            command = planned_commands[t]
+            command = plan_commands(planned[t])
         step = sim.step(command)
         obs = step.observation
         observations.append(obs)

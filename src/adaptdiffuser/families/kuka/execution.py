@@ -35,19 +35,24 @@ def plan_commands(plan_states: np.ndarray) -> np.ndarray:
     return np.concatenate([plan_states[..., :N_JOINTS], plan_states[..., list(FLAG_COLUMNS)]], axis=-1)
 
 
+def held_block(state: np.ndarray) -> int | None:
+    """The block a state ``[39]`` holds: the one whose flag is highest, if that flag is on (> 0.5); else None."""
+    flags = state[list(FLAG_COLUMNS)]
+    return int(np.argmax(flags)) if flags.max() > 0.5 else None
+
+
 def commands_following_blocks(scenes: Sequence[KukaScene], obs: np.ndarray, planned: np.ndarray) -> np.ndarray:
     """The commands ``[n, 11]`` toward planned states ``[n, 39]`` from observations ``[n, 39]`` when the arm follows
-    the blocks (``planning.follow_blocks``): where a planned state holds block ``b`` (its flag the highest one on),
+    the blocks (``planning.follow_blocks``): where a planned state holds block ``b`` (:func:`held_block`),
     the joints come from inverse kinematics, putting the cup on the real block's top until the cup holds ``b``, then
     where the plan carries ``b`` (at the offset the cup really holds it by); elsewhere, and while ``b`` has another
     block on it, the planned joints."""
     commands = plan_commands(planned)
     top = np.array([0.0, 0.0, BLOCK_HALF[2]])
     for i, (scene, o, s) in enumerate(zip(scenes, obs, planned, strict=True)):
-        flags = s[list(FLAG_COLUMNS)]
-        if flags.max() <= 0.5:
+        b = held_block(s)
+        if b is None:
             continue
-        b = int(np.argmax(flags))
         where = block_position_columns(b)
         held = o[FLAG_COLUMNS[b]] > 0.5
         if not held and covered_blocks(block_positions(o))[b]:
