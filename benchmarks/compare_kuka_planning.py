@@ -14,7 +14,7 @@ episode (mean), the share of full towers, the CPU seconds, and the gain over the
 (same seeds, same starts).
 
     python benchmarks/compare_kuka_planning.py WORKSPACE [--seed 7] [--episodes 20] [--phase 0] [--training-seed 0]
-        [--variants FILE.yaml] [--pick-place] [--out FILE.json]
+        [--variants FILE.yaml] [--pick-place | --pick-place-only] [--out FILE.json]
 
 WORKSPACE is a pipeline folder holding a trained KUKA model (after `dvc repro` of the quick-kuka profile). A
 variants file maps names to dotted settings, e.g. ``pinned: {planning.pin_resting_blocks: true}``.
@@ -59,39 +59,42 @@ def main() -> None:
     add_workspace_args(parser, task="kuka-stacking", episodes=20)
     parser.add_argument("--variants", type=Path, help="YAML: variant name -> {dotted task key: value}")
     parser.add_argument("--pick-place", action="store_true", help="also pick-and-place (validation seed, per setup)")
+    parser.add_argument("--pick-place-only", action="store_true", help="pick-and-place alone (no stacking episodes)")
     parser.add_argument("--out", type=Path, help="write the figures here as JSON")
     args = parser.parse_args()
     variants = yaml.safe_load(args.variants.read_text()) if args.variants else VARIANTS
     ws = load_trained(args)
+    args.pick_place = args.pick_place or args.pick_place_only
     if args.pick_place:  # the pick-and-place episodes on the same validation seed and count
         for key, value in (("seed", args.seed), ("episodes", args.episodes)):
             ws.raw = set_dotted(ws.raw, f"task.{ws.name}.pick_place.{key}", value)
     family = get_family("kuka")
     ref = ws.reference()
     print(
-        f"{ws.name} phase {args.phase} (training seed {args.training_seed}): {args.episodes} stacking episodes from "
-        f"seed {args.seed}, torch threads {torch.get_num_threads()}",
+        f"{ws.name} phase {args.phase} (training seed {args.training_seed}): {args.episodes} episodes (per setup "
+        f"in pick-and-place) from seed {args.seed}, torch threads {torch.get_num_threads()}",
         flush=True,
     )
     rows, first = [], None
     for name, settings in variants.items():
         task = ws.task_with(settings)
         planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
-        cpu = time.process_time()
-        result = run_episodes(
-            lambda task=task: family.make_simulator(task),
-            family.controller(task, planner, ws.files(), ws.device),
-            task.evaluate.episodes,
-            task.evaluate.seed,
-            task.evaluate.batch_size,
-            progress=False,
-        )
-        scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
-        row = {"variant": name, "settings": settings, "score_mean": float(scores.mean()),
-               "score_stderr": standard_error(scores), **family.episode_metrics(result),
-               "cpu_s": round(time.process_time() - cpu, 1)}  # fmt: skip
-        first = scores if first is None else first
-        row["over_first"] = paired_gain(scores, first)
+        row: dict[str, Any] = {"variant": name, "settings": settings}
+        if not args.pick_place_only:
+            cpu = time.process_time()
+            result = run_episodes(
+                lambda task=task: family.make_simulator(task),
+                family.controller(task, planner, ws.files(), ws.device),
+                task.evaluate.episodes,
+                task.evaluate.seed,
+                task.evaluate.batch_size,
+                progress=False,
+            )
+            scores = normalized_score(np.asarray(result.returns), ref["r_min"], ref["r_max"])
+            row |= {"score_mean": float(scores.mean()), "score_stderr": standard_error(scores),
+                    **family.episode_metrics(result), "cpu_s": round(time.process_time() - cpu, 1)}  # fmt: skip
+            first = scores if first is None else first
+            row["over_first"] = paired_gain(scores, first)
         if args.pick_place:
             cpu = time.process_time()
             unseen = family.evaluate_unseen(task, planner, ws.raw["alpha"], ref, 0, name, False)

@@ -23,7 +23,12 @@ from adaptdiffuser.families.kuka.evolution import (
     judge_episodes,
     within_range,
 )
-from adaptdiffuser.families.kuka.execution import PlaceObjective, commands_following_blocks, plan_commands
+from adaptdiffuser.families.kuka.execution import (
+    PlaceObjective,
+    block_to_place,
+    commands_following_blocks,
+    plan_commands,
+)
 from adaptdiffuser.families.kuka.params import ControlSettings, KukaTaskParams
 from adaptdiffuser.families.kuka.scene import (
     BLOCK_HALF,
@@ -175,6 +180,27 @@ def test_stacked_and_placed_counts_with_real_physics(sim: KukaSimulator) -> None
     carried = state.copy()
     carried[FLAG_COLUMNS[0]] = 1.0
     assert placed_count(carried) == 2
+
+
+def test_the_free_order_takes_a_tower_from_the_top_and_keeps_a_carried_block(sim: KukaSimulator) -> None:
+    tower = tower_blocks(np.random.default_rng(3), (0.35, 0.6))
+    obs = sim.start(np.zeros(N_JOINTS) + [0, 0.3, 0, -1.5, 0, 1.2, 0], tower)
+    for _ in range(20):  # let the tower settle
+        obs = sim.step(np.concatenate([obs[:N_JOINTS], np.zeros(4)])).observation
+    assert block_to_place(obs) == 3  # block 0 is the bottom: only the top is free
+    carried = obs.copy()
+    carried[FLAG_COLUMNS[2]] = 1.0
+    assert block_to_place(carried) == 2  # the held block stays the one to move
+    scattered = obs.copy()
+    for i in range(4):
+        scattered[block_position_columns(i)] = [0.0, 0.4 + 0.3 * i, 0.03]
+    assert block_to_place(scattered) == 0
+    scattered[block_position_columns(0)] = PLACE_TARGETS[0]  # block 0 on its target: the next one
+    scattered[block_position_columns(1)] = PLACE_TARGETS[1]
+    assert block_to_place(scattered) == 2
+    for i in range(4):
+        scattered[block_position_columns(i)] = PLACE_TARGETS[i]
+    assert block_to_place(scattered) == 0  # all placed: block 0
 
 
 def test_demonstrator_stacks_and_the_return_is_the_final_count() -> None:

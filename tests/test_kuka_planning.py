@@ -55,12 +55,14 @@ class RecordingPlanner(Planner):
         self.starts: list[np.ndarray] = []
         self.plans: list[np.ndarray] = []
         self.projections: list = []
+        self.guidances: list = []
 
     def plan(self, starts, goals, seeds, guidance=None, project=None) -> np.ndarray:
         plans = super().plan(starts, goals, seeds, guidance, project)
         self.starts.append(np.array(starts))
         self.plans.append(plans)
         self.projections.append(project)
+        self.guidances.append(guidance)
         return plans
 
 
@@ -137,8 +139,8 @@ def test_replanning_every_k_steps_plans_from_the_real_state_and_records_what_it_
     steps = 2 * span
     asked = []
 
-    def guidance(stretch: int, offset: int, n: int) -> None:
-        asked.append((stretch, offset, n))
+    def guidance(stretch: int, offset: int, obs: np.ndarray) -> None:
+        asked.append((stretch, offset, len(obs)))
 
     controller = ReplanningController(planner, seed=3, guidance=guidance, record=True, replan_every=every)
     planner.clear()
@@ -170,7 +172,7 @@ def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(
             {
                 "diffusion.horizon": HORIZON,
                 "planning": {"pin_resting_blocks": True, "replan_every": 5, "follow_blocks": True},
-                "pick_place": {"setups": [1], "episodes": 1, "batch_size": 1},
+                "pick_place": {"setups": [2], "episodes": 1, "batch_size": 1, "next_block": "free"},
             },
             tmp_path,
         )  # fmt: skip
@@ -182,6 +184,8 @@ def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(
     family.evaluate_unseen(task, planner, 1.0, {}, 0, "", False)
     plans_per_episode = task.settings.pick_place.replans * (HORIZON - 1) // 5
     assert len(planner.plans) == plans_per_episode and all(p is not None for p in planner.projections)
+    tower_top = block_position_columns(N_BLOCKS - 1).start  # setup 2 starts as a tower: its top block goes first
+    assert planner.guidances[0].objective.columns.tolist() == [tower_top]
 
 
 def kuka_raw(task_settings: dict, tmp_path: Path) -> dict:
@@ -203,7 +207,8 @@ def test_replan_every_longer_than_a_plan_is_refused(tmp_path: Path) -> None:
 def test_pick_and_place_guidance_follows_the_stretch_not_the_plan(planner: RecordingPlanner) -> None:
     """A plan drawn part-way into a stretch guides that stretch's block over the stretch's guided steps."""
     make = place_guidance(planner, 2.0, first=8)
-    whole, late, past = make(1, 0, 3), make(1, 5, 3), make(6, 12, 3)
+    obs = np.zeros((3, OBS_DIM))
+    whole, late, past = make(1, 0, obs), make(1, 5, obs), make(6, 12, obs)
     assert whole.objective.first == 8 and late.objective.first == 3 and past.objective.first == 0
     assert whole.alpha == 2.0
     columns = [block_position_columns(b).start for b in (1, 1, 1)]
@@ -211,3 +216,16 @@ def test_pick_and_place_guidance_follows_the_stretch_not_the_plan(planner: Recor
         whole.objective.columns.tolist() == columns
         and past.objective.columns.tolist() == [block_position_columns(2).start] * 3
     )
+
+
+def test_free_pick_and_place_guidance_moves_each_episodes_next_block(planner: RecordingPlanner) -> None:
+    """With ``next_block: free`` each episode's plan guides the block its own scene needs next, whatever the
+    stretch."""
+    obs = np.zeros((2, OBS_DIM))
+    for i in range(N_BLOCKS):
+        obs[:, block_position_columns(i)] = [0.0, 0.4 + 0.3 * i, 0.03]
+    obs[1, FLAG_COLUMNS[2]] = 1.0  # episode 1 carries block 2
+    guided = place_guidance(planner, 2.0, first=8, next_block="free")(3, 0, obs)
+    assert guided.objective.columns.tolist() == [block_position_columns(b).start for b in (0, 2)]
+    with pytest.raises(ValueError, match="next_block"):
+        place_guidance(planner, 2.0, first=8, next_block="random")

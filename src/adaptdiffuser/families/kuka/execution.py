@@ -22,7 +22,7 @@ from adaptdiffuser.families.kuka.scene import (
     block_position_columns,
     covered_blocks,
 )
-from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS, block_positions
+from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS, block_positions, placed_blocks
 from adaptdiffuser.seeding import derive_seed
 
 if TYPE_CHECKING:
@@ -108,8 +108,9 @@ def resting_blocks_pinned(planner: Planner) -> Projection:
 class ReplanningController(Controller):
     """Plans ``horizon`` states from the current observation and executes them open loop, one planned state per
     step; replans every ``replan_every`` steps (default ``horizon - 1``, the whole plan, so ``replans`` plans fill an
-    episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, o, n)`` gives the guidance
-    of a plan drawn ``o`` steps into the ``k``-th stretch of ``horizon - 1`` steps, for ``n`` episodes (or None);
+    episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, o, obs)`` gives the guidance
+    of a plan drawn ``o`` steps into the ``k``-th stretch of ``horizon - 1`` steps from observations ``obs``
+    ``[n, 39]`` (or None);
     each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given; with ``follow_blocks``
     the arm is commanded by :func:`commands_following_blocks` instead of the planned joints. With ``record``,
     :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the state each step was
@@ -155,7 +156,7 @@ class ReplanningController(Controller):
         if step == 0:
             seeds = [derive_seed(self.seed, e, replan) for e in self.episodes]
             stretch, offset = divmod(t, self.span)
-            guidance = self.guidance(stretch, offset, len(obs)) if self.guidance is not None else None
+            guidance = self.guidance(stretch, offset, obs) if self.guidance is not None else None
             self.plans = self.planner.plan(obs, None, seeds, guidance, self.project)[:, :, self.planner.act_dim :]
             if self.first_plans is None:
                 self.first_plans = self.plans.copy()
@@ -168,13 +169,32 @@ class ReplanningController(Controller):
         return plan_commands(commanded)
 
 
-def place_guidance(planner: Planner, alpha: float, first: int) -> Callable[[int, int, int], GuidanceBase]:
-    """Pick-and-place guidance: the plans of stretch ``k`` pull block ``k mod 4`` toward its target with scale
-    ``alpha`` over the stretch's steps from ``first`` on (a plan drawn ``o`` steps into the stretch: its steps from
-    ``first - o``)."""
+def block_to_place(obs: np.ndarray) -> int:
+    """The block pick-and-place moves next from observation ``[39]`` (``pick_place.next_block: free``): the one the
+    cup holds; else the lowest-numbered block off its target (:func:`placed_blocks`) with no block on it; else (none
+    left) the lowest-numbered block off its target, or block 0."""
+    held = held_block(obs)
+    if held is not None:
+        return held
+    off = ~placed_blocks(obs)
+    free = off & ~covered_blocks(block_positions(obs))
+    candidates = np.flatnonzero(free) if free.any() else np.flatnonzero(off)
+    return int(candidates[0]) if len(candidates) else 0
 
-    def make(stretch: int, offset: int, n: int) -> GuidanceBase:
-        return planner.guidance(PlaceObjective([stretch % N_BLOCKS] * n, max(0, first - offset)), alpha)
+
+def place_guidance(
+    planner: Planner, alpha: float, first: int, next_block: str = "in_turn"
+) -> Callable[[int, int, np.ndarray], GuidanceBase]:
+    """Pick-and-place guidance: the plans of stretch ``k`` pull a block toward its target with scale ``alpha`` over
+    the stretch's steps from ``first`` on (a plan drawn ``o`` steps into the stretch: its steps from ``first - o``);
+    the block is ``k mod 4`` (``next_block`` ``in_turn``) or each episode's :func:`block_to_place` (``free``)."""
+    if next_block not in ("in_turn", "free"):
+        raise ValueError(f"next_block must be 'in_turn' or 'free', got {next_block!r}")
+
+    def make(stretch: int, offset: int, obs: np.ndarray) -> GuidanceBase:
+        free = next_block == "free"
+        blocks = [block_to_place(o) for o in obs] if free else [stretch % N_BLOCKS] * len(obs)
+        return planner.guidance(PlaceObjective(blocks, max(0, first - offset)), alpha)
 
     return make
 

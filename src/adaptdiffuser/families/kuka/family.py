@@ -93,7 +93,7 @@ class KukaFamily(Family):
         metrics: dict[str, float] = {}
         every: list[np.ndarray] = []
         for setup in p.setups:
-            controller = task_controller(task, planner, p.seed, place_guidance(planner, alpha, first))
+            controller = task_controller(task, planner, p.seed, place_guidance(planner, alpha, first, p.next_block))
             result = run_episodes(
                 lambda setup=setup: self.make_simulator(task, "pick_place", setup),
                 controller,

@@ -80,7 +80,7 @@ class PlanningSettings(BaseModel):
     #: block's suction flag on, at every denoising step: the plan cannot move a block it has not picked up
     pin_resting_blocks: bool = False
     #: plan again after this many executed steps (null: after horizon - 1, the whole plan); the episode keeps its
-    #: length, and pick-and-place still guides block ``k mod 4`` over the k-th stretch of horizon - 1 steps
+    #: length, and pick-and-place still guides over stretches of horizon - 1 steps (``pick_place.next_block``)
     replan_every: int | None = Field(None, gt=0)
     #: execute by the blocks instead of the planned joints while the plan holds a block (its flag on): the cup is
     #: sent by inverse kinematics to the real block's top until it holds it, then carries it where the plan carries
@@ -109,6 +109,11 @@ class PickPlaceSettings(BaseModel):
     seed: int = Field(3000, ge=0)
     #: the guidance pulls the chosen block over plan steps from this fraction of the horizon on (reference: half)
     guide_from: float = Field(0.5, ge=0, lt=1)
+    #: which block a plan moves: ``in_turn``, block k mod 4 over the k-th stretch of horizon - 1 steps (one block
+    #: per plan in a fixed order; the reference draws the order at random); ``free``, decided at each plan from the
+    #: real scene: the block the cup holds, else the lowest-numbered one off its target with no block on it (a
+    #: tower is taken from the top, which a cup with ``control.free_top_only`` needs in setup 2)
+    next_block: Literal["in_turn", "free"] = "in_turn"
     batch_size: int = Field(20, gt=0)
 
 

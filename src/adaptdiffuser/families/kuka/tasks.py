@@ -44,11 +44,17 @@ def stacked_count(obs: np.ndarray) -> int:
     return min(count, N_BLOCKS - 1)
 
 
-def placed_count(obs: np.ndarray) -> int:
-    """Blocks resting within ``PLACE_RADIUS`` (xy) of their own pick-and-place target."""
+def placed_blocks(obs: np.ndarray) -> np.ndarray:
+    """``[4]`` bool: which blocks of observation ``[39]`` rest within ``PLACE_RADIUS`` (xy) of their own
+    pick-and-place target."""
     pos, held = block_positions(obs), block_flags(obs) > 0.5
     dist = np.linalg.norm(pos[:, :2] - PLACE_TARGETS[:, :2], axis=1)
-    return int(np.sum((dist < PLACE_RADIUS) & ~held))
+    return (dist < PLACE_RADIUS) & ~held
+
+
+def placed_count(obs: np.ndarray) -> int:
+    """Blocks resting within ``PLACE_RADIUS`` (xy) of their own pick-and-place target."""
+    return int(np.sum(placed_blocks(obs)))
 
 
 def scattered_blocks(
