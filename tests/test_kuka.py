@@ -15,6 +15,7 @@ from adaptdiffuser.families.kuka.demonstrator import (
     DemonstratorController,
     collect_demonstrations,
     record_demonstration,
+    stacking_order,
 )
 from adaptdiffuser.families.kuka.evolution import (
     SETUP_COLUMN,
@@ -205,13 +206,33 @@ def test_the_free_order_takes_a_tower_from_the_top_and_keeps_a_carried_block(sim
 
 def test_demonstrator_stacks_and_the_return_is_the_final_count() -> None:
     """The scripted demonstrator as an evaluation controller: each step's reward is the change of the stacked
-    count, so the return is the final count (a full tower: 3)."""
+    count, so the return is the final count (a full tower: 3), in each episode's own shuffled order."""
     d = SETTINGS.demonstrator
-    controller = DemonstratorController(d.speed, d.safe_height, d.dwell)
+    controller = DemonstratorController(d.speed, d.safe_height, d.dwell, order_seed=3)
     result = run_episodes(lambda: KukaSimulator(SETTINGS, episode_steps=460), controller, 2, 7, 2, progress=False)
     for executed, ret in zip(result.executed, result.returns, strict=True):
         assert stacked_count(executed[0]) == 0
         assert ret == stacked_count(executed[-1]) == 3
+
+
+@pytest.mark.parametrize("order", ["shuffled", "in_turn"])
+def test_demonstrations_build_the_tower_in_their_order(order: str) -> None:
+    """Shuffled demonstrations stack their own random order (a different base block across seeds); in turn, blocks
+    1, 2, 3 go onto block 0."""
+    settings = KukaTaskParams(demonstrator={"rest_steps": 2, "order": order})
+    sim = KukaSimulator(settings)
+    bases = set()
+    for seed in range(4):
+        demo = record_demonstration(sim, np.random.default_rng([11, seed]), settings)
+        replay = np.random.default_rng([11, seed])
+        sim.reset(replay)  # the order is drawn after the start, from the same generator
+        expected = stacking_order(replay if order == "shuffled" else None)
+        heights = block_positions(demo[-1])[:, 2]
+        assert stacked_count(demo[-1]) == 3
+        assert list(np.argsort(heights)) == list(expected)
+        bases.add(int(expected[0]))
+    assert (len(bases) > 1) == (order == "shuffled")
+    sim.close()
 
 
 def test_same_seed_same_episode() -> None:

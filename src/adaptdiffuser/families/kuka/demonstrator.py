@@ -1,10 +1,11 @@
-"""The scripted stacking demonstrator (the expert data of the seen task): for blocks 1, 2, 3 in turn, move the cup
-above the block, descend, attach, lift, move over the tower on block 0, descend, release and lift; every way point
-reached by inverse kinematics, in straight cup-space segments at a fixed speed."""
+"""The scripted stacking demonstrator (the expert data of the seen task): for each block of a stacking order after the
+first (blocks 1, 2, 3 on block 0, or a random order per demonstration), move the cup above the block, descend, attach,
+lift, move over the tower, descend, release and lift; every way point reached by inverse kinematics, in straight
+cup-space segments at a fixed speed."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -28,17 +29,29 @@ def _segment(start: np.ndarray, end: np.ndarray, step: float) -> Iterator[np.nda
         yield np.array([r * np.cos(angle), r * np.sin(angle), z])
 
 
+def stacking_order(rng: np.random.Generator | None) -> np.ndarray:
+    """The blocks bottom to top: a permutation drawn from ``rng`` (``demonstrator.order: shuffled``), or blocks
+    0, 1, 2, 3 without one (``in_turn``)."""
+    return np.arange(N_BLOCKS) if rng is None else rng.permutation(N_BLOCKS)
+
+
 def stacking_commands(
-    scene: KukaScene, obs: np.ndarray, speed: float, safe_height: float, dwell: int
+    scene: KukaScene,
+    obs: np.ndarray,
+    speed: float,
+    safe_height: float,
+    dwell: int,
+    order: Sequence[int] = tuple(range(N_BLOCKS)),
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Cup way points and suction flags ``(cup_xyz, flags[4])`` of one stacking demonstration from ``obs``; the
-    caller turns each into joint targets and steps the scene (the tower's top is read from the live scene)."""
+    """Cup way points and suction flags ``(cup_xyz, flags[4])`` of one stacking demonstration from ``obs`` that
+    builds the tower ``order`` (bottom to top); the caller turns each into joint targets and steps the scene (the
+    tower's top is read from the live scene)."""
     cup, _ = scene.cup()
     flags = np.zeros(N_BLOCKS)
-    for block in range(1, N_BLOCKS):
+    for below, block in zip(order[:-1], order[1:], strict=True):
         pos = block_positions(scene.observation())
         top = pos[block] + np.array([0.0, 0.0, BLOCK_HALF[2] + 0.005])
-        tower = pos[block - 1] + np.array([0.0, 0.0, BLOCK_HALF[2] + 2 * BLOCK_HALF[2] + 0.01])
+        tower = pos[below] + np.array([0.0, 0.0, BLOCK_HALF[2] + 2 * BLOCK_HALF[2] + 0.01])
         height = max(safe_height, tower[2] + 0.15)
         for goal, flag in ((top, 1.0), (tower, 0.0)):  # fetch the block, then put it on the tower
             for target in (np.array([cup[0], cup[1], height]), np.array([goal[0], goal[1], height]), goal):
@@ -51,24 +64,32 @@ def stacking_commands(
 
 
 def demonstrate(
-    scene: KukaScene, obs: np.ndarray, substeps: int, speed: float, safe_height: float, dwell: int
+    scene: KukaScene,
+    obs: np.ndarray,
+    substeps: int,
+    speed: float,
+    safe_height: float,
+    dwell: int,
+    order: Sequence[int] = tuple(range(N_BLOCKS)),
 ) -> np.ndarray:
-    """Run one stacking demonstration from the scene's current state (``obs``); return the observations
-    ``[T + 1, 39]``."""
+    """Run one stacking demonstration of the tower ``order`` from the scene's current state (``obs``); return the
+    observations ``[T + 1, 39]``."""
     observations = [obs]
     joints = obs[:N_JOINTS]
-    for cup, flags in stacking_commands(scene, obs, speed, safe_height, dwell):
+    for cup, flags in stacking_commands(scene, obs, speed, safe_height, dwell, order):
         joints = scene.inverse_kinematics(cup, joints)
         observations.append(scene.command(joints, flags, substeps))
     return np.asarray(observations)
 
 
 def record_demonstration(simulator, rng: np.random.Generator, settings) -> np.ndarray:
-    """One demonstration from a protocol start drawn with ``rng``: the observations ``[T, 39]`` from the start to
-    ``rest_steps`` steps after the last release (the arm holding still)."""
+    """One demonstration from a protocol start drawn with ``rng`` (then its stacking order, when
+    ``demonstrator.order`` is ``shuffled``): the observations ``[T, 39]`` from the start to ``rest_steps`` steps
+    after the last release (the arm holding still)."""
     d, c = settings.demonstrator, settings.control
     obs = simulator.reset(rng)
-    observations = demonstrate(simulator.scene, obs, c.substeps, d.speed, d.safe_height, d.dwell)
+    order = stacking_order(rng if d.order == "shuffled" else None)
+    observations = demonstrate(simulator.scene, obs, c.substeps, d.speed, d.safe_height, d.dwell, order)
     hold = observations[-1][:N_JOINTS]
     rest = [simulator.scene.command(hold, np.zeros(N_BLOCKS), c.substeps) for _ in range(max(1, d.rest_steps))]
     return np.concatenate([observations, rest])
@@ -104,15 +125,19 @@ def collect_demonstrations(simulator, settings, env: str, progress: bool):
 
 
 class DemonstratorController(Controller):
-    """The scripted stacking demonstrator on each environment (the expert reference); it holds still when done."""
+    """The scripted stacking demonstrator on each environment (the expert reference); it holds still when done.
+    With ``order_seed``, episode ``e`` stacks in the order drawn with ``(order_seed, e)``; without, blocks in turn."""
 
-    def __init__(self, speed: float, safe_height: float, dwell: int) -> None:
+    def __init__(self, speed: float, safe_height: float, dwell: int, order_seed: int | None = None) -> None:
         self.speed, self.safe_height, self.dwell = speed, safe_height, dwell
+        self.order_seed = order_seed
 
     def begin(self, envs, obs, episodes):
+        seed = self.order_seed
+        orders = [stacking_order(None if seed is None else np.random.default_rng([seed, e])) for e in episodes]
         self.scripts = [
-            stacking_commands(env.scene, o, self.speed, self.safe_height, self.dwell)
-            for env, o in zip(envs, obs, strict=True)
+            stacking_commands(env.scene, o, self.speed, self.safe_height, self.dwell, order)
+            for env, o, order in zip(envs, obs, orders, strict=True)
         ]
         self.last = [(o[:N_JOINTS].copy(), np.zeros(N_BLOCKS)) for o in obs]
 

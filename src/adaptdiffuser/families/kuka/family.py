@@ -58,7 +58,9 @@ class KukaFamily(Family):
         ev, d = task.evaluate, task.settings.demonstrator
         ref: dict[str, Any] = {"r_min": 0.0, "r_max": float(N_BLOCKS - 1), "n_episodes": ev.episodes}
         controllers = {
-            "demonstrator": DemonstratorController(d.speed, d.safe_height, d.dwell),
+            "demonstrator": DemonstratorController(
+                d.speed, d.safe_height, d.dwell, ev.seed if d.order == "shuffled" else None
+            ),
             "random": RandomController(ev.seed),
         }
         for who, controller in controllers.items():

@@ -69,6 +69,10 @@ class DemonstratorSettings(BaseModel):
     dwell: int = Field(4, ge=0)
     #: plan steps recorded at rest after the last block, so plans learn to stay
     rest_steps: int = Field(20, ge=0)
+    #: the tower's order, bottom to top: ``shuffled``, a random order per demonstration (the reference's data:
+    #: every block is picked up in some demonstration); ``in_turn``, blocks 1, 2, 3 onto block 0 always (block 0
+    #: never moves in the data, so a planner trained on it cannot move block 0 in pick-and-place)
+    order: Literal["shuffled", "in_turn"] = "shuffled"
 
 
 class PlanningSettings(BaseModel):
