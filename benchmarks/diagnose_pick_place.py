@@ -1,0 +1,91 @@
+"""Where KUKA pick-and-place is lost, stretch by stretch, on validation episodes (printed, never asserted): for each
+stretch of ``horizon - 1`` steps, the block the guidance pulls (``pick_place.next_block``), whether the plan held it
+(its flag on at some planned step), whether the cup really held it, and how far it ended from its target; and
+for each block, in how many stretches a plan held it at all.
+
+    python benchmarks/diagnose_pick_place.py WORKSPACE [--setups 1 2] [--alphas 10] [--seed 7] [--episodes 10]
+        [--set KEY=VALUE ...] [--verbose]
+
+WORKSPACE is a pipeline folder holding a trained KUKA model (after `dvc repro` of the quick-kuka profile); each
+``--set`` is a dotted key of ``task.kuka-stacking`` (e.g. ``pick_place.next_block=free``); ``--verbose`` prints
+every episode's stretches.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import yaml
+from trained_workspace import add_workspace_args, load_trained
+
+from adaptdiffuser.diffusion.samplers import make_sampler
+from adaptdiffuser.evaluation import run_episodes
+from adaptdiffuser.families.kuka.execution import block_to_place, place_guidance, task_controller
+from adaptdiffuser.families.kuka.scene import N_BLOCKS
+from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS, block_flags, block_positions, placed_count
+from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.planning import Planner
+
+
+def guided_block(next_block: str, stretch: int, start: np.ndarray) -> int:
+    """The block the guidance pulls over a stretch that starts at observation ``start`` (plans of a whole stretch,
+    ``planning.replan_every`` null)."""
+    return block_to_place(start) if next_block == "free" else stretch % N_BLOCKS
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    add_workspace_args(parser, task="kuka-stacking", episodes=10)
+    parser.add_argument("--setups", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--alphas", type=float, nargs="+", default=None, help="default: the workspace's alpha")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="dotted task keys")
+    parser.add_argument("--verbose", action="store_true")
+    args = parser.parse_args()
+    ws = load_trained(args, episodes_section="pick_place")
+    settings = {key: yaml.safe_load(value) for key, value in (kv.split("=", 1) for kv in args.set)}
+    task = ws.task_with(settings)
+    family = get_family("kuka")
+    planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
+    p = task.settings.pick_place
+    first, span = int(p.guide_from * planner.horizon), planner.horizon - 1
+    if task.settings.planning.replan_every is not None:
+        raise SystemExit("diagnose_pick_place: needs planning.replan_every null (one plan per stretch)")
+    print(f"{ws.name} phase {args.phase} (training seed {args.training_seed}), {settings or 'as profiled'}: "
+          f"{p.episodes} episodes per setup from seed {args.seed}")  # fmt: skip
+    for alpha in args.alphas or [float(ws.raw["alpha"])]:
+        for setup in args.setups:
+            guidance = place_guidance(planner, alpha, first, p.next_block)
+            controller = task_controller(task, planner, p.seed, guidance, record=True)
+            result = run_episodes(
+                lambda setup=setup: family.make_simulator(task, "pick_place", setup),
+                controller,
+                p.episodes,
+                p.seed,
+                p.batch_size,
+                progress=False,
+            )
+            planned_held = cup_held = stretches = placed = 0
+            by_block = np.zeros(N_BLOCKS, dtype=int)  # stretches whose plan held each block
+            for e, (executed, planned) in enumerate(zip(result.executed, controller.recorded, strict=True)):
+                rows = []
+                for k in range(p.replans):
+                    real, plan = executed[k * span : (k + 1) * span + 1], planned[k * span : (k + 1) * span + 1]
+                    b = guided_block(p.next_block, k, real[0])
+                    by_block += (block_flags(plan) > 0.5).any(axis=0)
+                    in_plan = bool((block_flags(plan)[:, b] > 0.5).any())
+                    in_cup = bool((block_flags(real)[:, b] > 0.5).any())
+                    away = np.linalg.norm(block_positions(real[-1])[b, :2] - PLACE_TARGETS[b, :2])
+                    planned_held, cup_held, stretches = planned_held + in_plan, cup_held + in_cup, stretches + 1
+                    rows.append(f"block {b}: plan {int(in_plan)} cup {int(in_cup)} {away:.2f} m")
+                placed += placed_count(executed[-1])
+                if args.verbose:
+                    print(f"  episode {e}: placed {placed_count(executed[-1])}; " + " | ".join(rows))
+            print(f"alpha {alpha:g}, setup {setup}: placed {placed}/{4 * len(result.executed)} blocks; the guided "
+                  f"block held by the plan in {planned_held}/{stretches} stretches, by the cup in "
+                  f"{cup_held}/{stretches}; stretches whose plan held block 0-3: {by_block.tolist()}",
+                  flush=True)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
