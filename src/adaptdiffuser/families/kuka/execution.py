@@ -110,11 +110,10 @@ class ReplanningController(Controller):
     step; replans every ``replan_every`` steps (default ``horizon - 1``, the whole plan, so ``replans`` plans fill an
     episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, o, obs)`` gives the guidance
     of a plan drawn ``o`` steps into the ``k``-th stretch of ``horizon - 1`` steps from observations ``obs``
-    ``[n, 39]`` (or None);
-    each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given; with ``follow_blocks``
-    the arm is commanded by :func:`commands_following_blocks` instead of the planned joints. With ``record``,
-    :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the state each step was
-    commanded to reach), episodes in the order they ran."""
+    ``[n, 39]`` (or None); each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given;
+    with ``follow_blocks`` the arm is commanded by :func:`commands_following_blocks` instead of the planned joints.
+    With ``record``, :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the
+    state each step was commanded to reach), episodes in the order they ran."""
 
     def __init__(
         self,
