@@ -55,7 +55,7 @@ def main() -> None:
           f"{p.episodes} episodes per setup from seed {args.seed}")  # fmt: skip
     for alpha in args.alphas or [float(ws.raw["alpha"])]:
         for setup in args.setups:
-            guidance = place_guidance(planner, alpha, first, p.next_block)
+            guidance = place_guidance(planner, alpha, first, p.next_block, p.guide_on)
             controller = task_controller(task, planner, p.seed, guidance, record=True)
             result = run_episodes(
                 lambda setup=setup: family.make_simulator(task, "pick_place", setup),

@@ -14,7 +14,7 @@ from adaptdiffuser.config import DiffusionParams, ModelParams, PretrainParams
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import WindowDataset, joint_array
-from adaptdiffuser.diffusion.guidance import ValueGuidance
+from adaptdiffuser.diffusion.guidance import Guidance, ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
 from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.planning import Planner
@@ -50,25 +50,30 @@ def _closest_approach(plans: np.ndarray) -> np.ndarray:
     return np.linalg.norm(plans[:, :, 2:4] - COIN.numpy()[:, None, :], axis=-1).min(axis=1)
 
 
+@pytest.mark.parametrize("on", ["mean", "x0"])
 @pytest.mark.parametrize("sampler", [DDPMSampler(), DDIMSampler(8)], ids=["ddpm", "ddim"])
-def test_alpha_zero_is_exactly_unguided(trained: ModelBundle, sampler) -> None:
+def test_alpha_zero_is_exactly_unguided(trained: ModelBundle, sampler, on: str) -> None:
     planner = Planner(trained, sampler, CPU)
     plain = planner.plan(STARTS, GOALS, SEEDS)
-    zero = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), 0.0))
+    zero = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), 0.0, on))
     np.testing.assert_array_equal(plain, zero)
 
 
+@pytest.mark.parametrize(("on", "alpha"), [("mean", 10.0), ("x0", 0.1)])
 @pytest.mark.parametrize("sampler", [DDPMSampler(), DDIMSampler(8)], ids=["ddpm", "ddim"])
-def test_guidance_moves_plans_toward_the_coin_and_keeps_inpainting(trained: ModelBundle, sampler) -> None:
+def test_guidance_moves_plans_toward_the_coin_and_keeps_inpainting(
+    trained: ModelBundle, sampler, on: str, alpha: float
+) -> None:
+    """On the step's mean (the paper's) or on the clean estimate, guidance pulls plans toward the coin."""
     planner = Planner(trained, sampler, CPU)
     plain = planner.plan(STARTS, GOALS, SEEDS)
-    guided = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), 10.0))
+    guided = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), alpha, on))
     assert _closest_approach(guided).mean() < _closest_approach(plain).mean() - 0.1
     # the start and goal stay pinned by inpainting
     np.testing.assert_allclose(guided[:, 0, 2:], STARTS, atol=1e-5)
     np.testing.assert_allclose(guided[:, -1, 2:], GOALS, atol=1e-5)
     # and a negative alpha pushes the other way
-    away = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), -10.0))
+    away = planner.plan(STARTS, GOALS, SEEDS, guidance=planner.guidance(CoinObjective(COIN), -alpha, on))
     assert _closest_approach(away).mean() > _closest_approach(guided).mean()
 
 
@@ -117,3 +122,8 @@ def test_value_guidance_raises_the_value_and_keeps_inpainting(trained: ModelBund
     n_steps = trained.ema.n_steps
     off = ValueGuidance(MeanOfDim(Y), scale=10.0, n_guide_steps=2, t_stopgrad=n_steps)
     np.testing.assert_array_equal(planner.plan(STARTS, GOALS, SEEDS, guidance=off), plain)
+
+
+def test_guidance_refuses_an_unknown_target() -> None:
+    with pytest.raises(ValueError, match="'mean' or 'x0'"):
+        Guidance(CoinObjective(COIN), 1.0, lambda x: x, on="noise")

@@ -42,9 +42,10 @@ class Planner:
         normed = self.normalizer.normalize(padded)[:, self.act_dim :]
         return torch.as_tensor(normed, dtype=self.dtype, device=self.device)
 
-    def guidance(self, objective: Objective, alpha: float) -> Guidance:
-        """Guidance by ``objective`` (a function of raw states) with scale ``alpha``, for :meth:`plan`."""
-        return Guidance(objective, alpha, lambda x: self.normalizer.unnormalize(x)[..., self.act_dim :])
+    def guidance(self, objective: Objective, alpha: float, on: str = "mean") -> Guidance:
+        """Guidance by ``objective`` (a function of raw states) with scale ``alpha``, acting on each step's mean or
+        on the denoiser's clean estimate (``on``, :class:`Guidance`), for :meth:`plan`."""
+        return Guidance(objective, alpha, lambda x: self.normalizer.unnormalize(x)[..., self.act_dim :], on)
 
     def plan(
         self,

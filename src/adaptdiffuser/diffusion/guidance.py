@@ -6,7 +6,8 @@
 strided DDIM the variance of the equivalent stochastic jump (zero for the final jump to the clean end).
 
 * :class:`Guidance` -- reward-gradient guidance (AdaptDiffuser paper Eq. 5, appendix A, Maze2D): the step's mean
-  moves by ``alpha * variance * grad J``, where J is a differentiable objective of the trajectory in raw units.
+  moves by ``alpha * variance * grad J``, where J is a differentiable objective of the trajectory in raw units; or
+  (``on="x0"``, a third hook, ``estimate_shift``) the denoiser's clean estimate moves by ``alpha * grad J``.
 * :class:`ValueGuidance` -- Diffuser's locomotion recipe: before each denoising step, ``n_guide_steps`` gradient
   ascent moves on a learned value ``V(x_t, t)``, each followed by re-inpainting; :meth:`ValueGuidance.values`
   scores finished samples so a controller can keep the best of N.
@@ -52,15 +53,31 @@ class GuidanceBase:
         """What to add to the step's mean before noise and inpainting (default: zero)."""
         return torch.zeros_like(mean)
 
+    def estimate_shift(self, x0: torch.Tensor) -> torch.Tensor:
+        """What to add to the denoiser's clean estimate ``x0`` before the step is taken from it (default: zero)."""
+        return torch.zeros_like(x0)
+
 
 class Guidance(GuidanceBase):
     """``alpha`` times the gradient of ``objective`` at a normalized trajectory; ``to_states`` maps a normalized
-    trajectory ``[batch, horizon, transition]`` to raw states (differentiably)."""
+    trajectory ``[batch, horizon, transition]`` to raw states (differentiably). ``on="mean"`` (the paper's Eq. 5)
+    adds ``alpha * variance * grad J`` to each step's mean; ``on="x0"`` adds ``alpha * grad J`` to the denoiser's
+    clean estimate at every step, the last one included (whose variance is zero in DDIM), so that an x0-predicting
+    model cannot pull the plan back where its prior lies."""
 
-    def __init__(self, objective: Objective, alpha: float, to_states: Callable[[torch.Tensor], torch.Tensor]) -> None:
+    def __init__(
+        self,
+        objective: Objective,
+        alpha: float,
+        to_states: Callable[[torch.Tensor], torch.Tensor],
+        on: str = "mean",
+    ) -> None:
+        if on not in ("mean", "x0"):
+            raise ValueError(f"guidance acts on 'mean' or 'x0', got {on!r}")
         self.objective = objective
         self.alpha = float(alpha)
         self.to_states = to_states
+        self.on = on
 
     def shift(self, x: torch.Tensor, variance: torch.Tensor | float) -> torch.Tensor:
         """The guided move ``alpha * variance * dJ/dx`` at ``x`` (zero when ``alpha`` is zero)."""
@@ -73,8 +90,12 @@ class Guidance(GuidanceBase):
         return self.alpha * variance * grad
 
     def mean_shift(self, mean: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
-        """The sampler hook: :meth:`shift`."""
-        return self.shift(mean, variance)
+        """The sampler hook: :meth:`shift` (``on="mean"``)."""
+        return self.shift(mean, variance) if self.on == "mean" else torch.zeros_like(mean)
+
+    def estimate_shift(self, x0: torch.Tensor) -> torch.Tensor:
+        """The sampler hook: ``alpha * grad J`` at the clean estimate (``on="x0"``)."""
+        return self.shift(x0, 1.0) if self.on == "x0" else torch.zeros_like(x0)
 
 
 class ValueGuidance(GuidanceBase):

@@ -28,10 +28,11 @@ class Sampler(ABC):
 
     @abstractmethod
     def step(
-        self, diffusion: GaussianDiffusion, x: torch.Tensor, t: int, t_prev: int
+        self, diffusion: GaussianDiffusion, x: torch.Tensor, t: int, t_prev: int, guidance: GuidanceBase | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The mean of one denoising move from step ``t`` to ``t_prev`` (``-1`` means the clean end) and the
-        log-variance of that move (the noise a stochastic sampler adds, and the scale of guidance)."""
+        """The mean of one denoising move from step ``t`` to ``t_prev`` (``-1`` means the clean end), taken from the
+        clean estimate moved by ``guidance.estimate_shift`` (:func:`guided_estimate`), and the log-variance of that
+        move (the noise a stochastic sampler adds, and the scale of guidance)."""
 
     #: whether :meth:`sample` adds noise of the step's variance (DDPM) or not (DDIM, eta = 0)
     stochastic: bool = False
@@ -48,8 +49,9 @@ class Sampler(ABC):
     ) -> torch.Tensor:
         """Run the chain from pure noise; return normalized trajectories ``[len(noise), horizon, transition]``,
         row ``i`` drawing its initial and per-step noise from row ``i`` of ``noise`` only. With ``guidance``, each
-        step first calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), then adds
-        ``guidance.mean_shift`` to the step's mean (reward guidance, paper Eq. 5) before noise and inpainting.
+        step first calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), moves the denoiser's clean
+        estimate by ``guidance.estimate_shift``, then adds ``guidance.mean_shift`` to the step's mean (reward
+        guidance, paper Eq. 5) before noise and inpainting.
         ``project`` (a family's constraint) is applied after the inpainting, at the start and after every step.
 
         ``warm_start = (x0, t0)`` starts instead from the normalized trajectories ``x0`` noised to diffusion step
@@ -81,13 +83,21 @@ class Sampler(ABC):
         for t, t_prev in zip(steps, [*steps[1:], -1], strict=True):
             if guidance is not None:
                 x = guidance.before_denoise(x, t, self.log_variance(diffusion, t, t_prev).exp(), conditions, act_dim)
-            mean, log_var = self.step(diffusion, x, t, t_prev)
+            mean, log_var = self.step(diffusion, x, t, t_prev, guidance)
             if guidance is not None:
                 mean = mean + guidance.mean_shift(mean, log_var.exp())
             if self.stochastic and t_prev >= 0:
                 mean = mean + (0.5 * log_var).exp() * noise.randn(x.shape[1:])
             x = constrain(mean)
         return x
+
+
+def guided_estimate(
+    diffusion: GaussianDiffusion, x: torch.Tensor, tt: torch.Tensor, guidance: GuidanceBase | None
+) -> torch.Tensor:
+    """The denoiser's clean estimate of ``x`` at steps ``tt``, moved by ``guidance.estimate_shift`` when given."""
+    x0 = diffusion.predict_x0(x, tt)
+    return x0 if guidance is None else x0 + guidance.estimate_shift(x0)
 
 
 class DDPMSampler(Sampler):
@@ -101,9 +111,9 @@ class DDPMSampler(Sampler):
     def log_variance(self, diffusion: GaussianDiffusion, t: int, t_prev: int) -> torch.Tensor:
         return diffusion.posterior_log_variance[t]
 
-    def step(self, diffusion, x, t, t_prev):
+    def step(self, diffusion, x, t, t_prev, guidance=None):
         tt = torch.full((x.shape[0],), t, device=x.device, dtype=torch.long)
-        mean, _ = diffusion.posterior(diffusion.predict_x0(x, tt), x, tt)
+        mean, _ = diffusion.posterior(guided_estimate(diffusion, x, tt, guidance), x, tt)
         return mean, self.log_variance(diffusion, t, t_prev)
 
 
@@ -128,9 +138,9 @@ class DDIMSampler(Sampler):
         variance = (1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev)
         return variance.clamp(min=1e-20).log()
 
-    def step(self, diffusion, x, t, t_prev):
+    def step(self, diffusion, x, t, t_prev, guidance=None):
         tt = torch.full((x.shape[0],), t, device=x.device, dtype=torch.long)
-        x0 = diffusion.predict_x0(x, tt)
+        x0 = guided_estimate(diffusion, x, tt, guidance)
         log_var = self.log_variance(diffusion, t, t_prev)
         if t_prev < 0:
             return x0, log_var

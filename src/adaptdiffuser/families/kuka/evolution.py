@@ -81,7 +81,7 @@ def generate_episodes(
         tasks = np.flatnonzero(setups == setup)
         if not len(tasks):
             continue
-        guidance = place_guidance(planner, alpha, first, p.next_block)
+        guidance = place_guidance(planner, alpha, first, p.next_block, p.guide_on)
         controller = task_controller(task, planner, derive_seed(seed, setup), guidance, record=True)
         offset = int(tasks[0])
         result = run_episodes(

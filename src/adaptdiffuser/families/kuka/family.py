@@ -95,7 +95,8 @@ class KukaFamily(Family):
         metrics: dict[str, float] = {}
         every: list[np.ndarray] = []
         for setup in p.setups:
-            controller = task_controller(task, planner, p.seed, place_guidance(planner, alpha, first, p.next_block))
+            guidance = place_guidance(planner, alpha, first, p.next_block, p.guide_on)
+            controller = task_controller(task, planner, p.seed, guidance)
             result = run_episodes(
                 lambda setup=setup: self.make_simulator(task, "pick_place", setup),
                 controller,

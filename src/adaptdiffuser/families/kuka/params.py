@@ -118,6 +118,9 @@ class PickPlaceSettings(BaseModel):
     #: real scene: the block the cup holds, else the lowest-numbered one off its target with no block on it (a
     #: tower is taken from the top, which a cup with ``control.free_top_only`` needs in setup 2)
     next_block: Literal["in_turn", "free"] = "in_turn"
+    #: where the guidance acts: ``mean``, each denoising step's mean scaled by its variance (the paper's Eq. 5);
+    #: ``x0``, the denoiser's clean estimate at every step (``alpha`` then means a much smaller pull per step)
+    guide_on: Literal["mean", "x0"] = "mean"
     batch_size: int = Field(20, gt=0)
 
 
