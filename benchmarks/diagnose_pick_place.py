@@ -20,18 +20,11 @@ import yaml
 from trained_workspace import add_workspace_args, load_trained
 
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.families.kuka.execution import block_to_place, place_guidance, task_controller
+from adaptdiffuser.families.kuka.execution import guided_blocks
 from adaptdiffuser.families.kuka.scene import N_BLOCKS
 from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS, block_flags, block_positions, placed_count
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
-
-
-def guided_block(next_block: str, stretch: int, start: np.ndarray) -> int:
-    """The block the guidance pulls over a stretch that starts at observation ``start`` (plans of a whole stretch,
-    ``planning.replan_every`` null)."""
-    return block_to_place(start) if next_block == "free" else stretch % N_BLOCKS
 
 
 def main() -> None:
@@ -48,30 +41,21 @@ def main() -> None:
     family = get_family("kuka")
     planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
     p = task.settings.pick_place
-    first, span = int(p.guide_from * planner.horizon), planner.horizon - 1
+    span = planner.horizon - 1
     if task.settings.planning.replan_every is not None:
         raise SystemExit("diagnose_pick_place: needs planning.replan_every null (one plan per stretch)")
     print(f"{ws.name} phase {args.phase} (training seed {args.training_seed}), {settings or 'as profiled'}: "
           f"{p.episodes} episodes per setup from seed {args.seed}")  # fmt: skip
     for alpha in args.alphas or [float(ws.raw["alpha"])]:
         for setup in args.setups:
-            guidance = place_guidance(planner, alpha, first, p.next_block, p.guide_on)
-            controller = task_controller(task, planner, p.seed, guidance, record=True)
-            result = run_episodes(
-                lambda setup=setup: family.make_simulator(task, "pick_place", setup),
-                controller,
-                p.episodes,
-                p.seed,
-                p.batch_size,
-                progress=False,
-            )
+            result, controller = family.pick_place_episodes(task, planner, alpha, setup, record=True)
             planned_held = cup_held = stretches = placed = 0
             by_block = np.zeros(N_BLOCKS, dtype=int)  # stretches whose plan held each block
             for e, (executed, planned) in enumerate(zip(result.executed, controller.recorded, strict=True)):
                 rows = []
                 for k in range(p.replans):
                     real, plan = executed[k * span : (k + 1) * span + 1], planned[k * span : (k + 1) * span + 1]
-                    b = guided_block(p.next_block, k, real[0])
+                    b = guided_blocks(p.next_block, k, real[:1])[0]
                     by_block += (block_flags(plan) > 0.5).any(axis=0)
                     in_plan = bool((block_flags(plan)[:, b] > 0.5).any())
                     in_cup = bool((block_flags(real)[:, b] > 0.5).any())
@@ -81,8 +65,8 @@ def main() -> None:
                 placed += placed_count(executed[-1])
                 if args.verbose:
                     print(f"  episode {e}: placed {placed_count(executed[-1])}; " + " | ".join(rows))
-            print(f"alpha {alpha:g}, setup {setup}: placed {placed}/{4 * len(result.executed)} blocks; the guided "
-                  f"block held by the plan in {planned_held}/{stretches} stretches, by the cup in "
+            print(f"alpha {alpha:g}, setup {setup}: placed {placed}/{N_BLOCKS * len(result.executed)} blocks; "
+                  f"the guided block held by the plan in {planned_held}/{stretches} stretches, by the cup in "
                   f"{cup_held}/{stretches}; stretches whose plan held block 0-3: {by_block.tolist()}",
                   flush=True)  # fmt: skip
 

@@ -7,7 +7,7 @@ strided DDIM the variance of the equivalent stochastic jump (zero for the final 
 
 * :class:`Guidance` -- reward-gradient guidance (AdaptDiffuser paper Eq. 5, appendix A, Maze2D): the step's mean
   moves by ``alpha * variance * grad J``, where J is a differentiable objective of the trajectory in raw units; or
-  (``on="x0"``, a third hook, ``estimate_shift``) the denoiser's clean estimate moves by ``alpha * grad J``.
+  (``on="x0"``, a third hook, ``guide_estimate``) the denoiser's clean estimate moves by ``alpha * grad J``.
 * :class:`ValueGuidance` -- Diffuser's locomotion recipe: before each denoising step, ``n_guide_steps`` gradient
   ascent moves on a learned value ``V(x_t, t)``, each followed by re-inpainting; :meth:`ValueGuidance.values`
   scores finished samples so a controller can keep the best of N.
@@ -53,9 +53,9 @@ class GuidanceBase:
         """What to add to the step's mean before noise and inpainting (default: zero)."""
         return torch.zeros_like(mean)
 
-    def estimate_shift(self, x0: torch.Tensor) -> torch.Tensor:
-        """What to add to the denoiser's clean estimate ``x0`` before the step is taken from it (default: zero)."""
-        return torch.zeros_like(x0)
+    def guide_estimate(self, x0: torch.Tensor) -> torch.Tensor:
+        """The denoiser's clean estimate ``x0`` the step is taken from (default: ``x0`` itself, nothing computed)."""
+        return x0
 
 
 class Guidance(GuidanceBase):
@@ -93,9 +93,9 @@ class Guidance(GuidanceBase):
         """The sampler hook: :meth:`shift` (``on="mean"``)."""
         return self.shift(mean, variance) if self.on == "mean" else torch.zeros_like(mean)
 
-    def estimate_shift(self, x0: torch.Tensor) -> torch.Tensor:
-        """The sampler hook: ``alpha * grad J`` at the clean estimate (``on="x0"``)."""
-        return self.shift(x0, 1.0) if self.on == "x0" else torch.zeros_like(x0)
+    def guide_estimate(self, x0: torch.Tensor) -> torch.Tensor:
+        """The sampler hook: the clean estimate moved by ``alpha * grad J`` (``on="x0"``; else unchanged)."""
+        return x0 + self.shift(x0, 1.0) if self.on == "x0" else x0
 
 
 class ValueGuidance(GuidanceBase):

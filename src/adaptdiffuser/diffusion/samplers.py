@@ -31,7 +31,7 @@ class Sampler(ABC):
         self, diffusion: GaussianDiffusion, x: torch.Tensor, t: int, t_prev: int, guidance: GuidanceBase | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The mean of one denoising move from step ``t`` to ``t_prev`` (``-1`` means the clean end), taken from the
-        clean estimate moved by ``guidance.estimate_shift`` (:func:`guided_estimate`), and the log-variance of that
+        clean estimate as ``guidance.guide_estimate`` gives it (:func:`guided_estimate`), and the log-variance of that
         move (the noise a stochastic sampler adds, and the scale of guidance)."""
 
     #: whether :meth:`sample` adds noise of the step's variance (DDPM) or not (DDIM, eta = 0)
@@ -49,9 +49,9 @@ class Sampler(ABC):
     ) -> torch.Tensor:
         """Run the chain from pure noise; return normalized trajectories ``[len(noise), horizon, transition]``,
         row ``i`` drawing its initial and per-step noise from row ``i`` of ``noise`` only. With ``guidance``, each
-        step first calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), moves the denoiser's clean
-        estimate by ``guidance.estimate_shift``, then adds ``guidance.mean_shift`` to the step's mean (reward
-        guidance, paper Eq. 5) before noise and inpainting.
+        step first calls ``guidance.before_denoise`` on the noisy ``x`` (value guidance), lets
+        ``guidance.guide_estimate`` move the denoiser's clean estimate, then adds ``guidance.mean_shift`` to the
+        step's mean (reward guidance, paper Eq. 5) before noise and inpainting.
         ``project`` (a family's constraint) is applied after the inpainting, at the start and after every step.
 
         ``warm_start = (x0, t0)`` starts instead from the normalized trajectories ``x0`` noised to diffusion step
@@ -95,9 +95,9 @@ class Sampler(ABC):
 def guided_estimate(
     diffusion: GaussianDiffusion, x: torch.Tensor, tt: torch.Tensor, guidance: GuidanceBase | None
 ) -> torch.Tensor:
-    """The denoiser's clean estimate of ``x`` at steps ``tt``, moved by ``guidance.estimate_shift`` when given."""
+    """The denoiser's clean estimate of ``x`` at steps ``tt``, as ``guidance.guide_estimate`` moves it when given."""
     x0 = diffusion.predict_x0(x, tt)
-    return x0 if guidance is None else x0 + guidance.estimate_shift(x0)
+    return x0 if guidance is None else guidance.guide_estimate(x0)
 
 
 class DDPMSampler(Sampler):

@@ -181,19 +181,26 @@ def block_to_place(obs: np.ndarray) -> int:
     return int(candidates[0]) if len(candidates) else 0
 
 
+def guided_blocks(next_block: str, stretch: int, obs: np.ndarray) -> list[int]:
+    """The block each episode's plan of stretch ``stretch`` is guided to move, from observations ``obs`` ``[n, 39]``:
+    ``stretch mod 4`` (``next_block`` ``in_turn``) or each episode's :func:`block_to_place` (``free``)."""
+    if next_block == "free":
+        return [block_to_place(o) for o in obs]
+    return [stretch % N_BLOCKS] * len(obs)
+
+
 def place_guidance(
     planner: Planner, alpha: float, first: int, next_block: str = "in_turn", on: str = "mean"
 ) -> Callable[[int, int, np.ndarray], GuidanceBase]:
     """Pick-and-place guidance: the plans of stretch ``k`` pull a block toward its target with scale ``alpha`` over
     the stretch's steps from ``first`` on (a plan drawn ``o`` steps into the stretch: its steps from ``first - o``);
-    the block is ``k mod 4`` (``next_block`` ``in_turn``) or each episode's :func:`block_to_place` (``free``);
-    ``on`` says where the guidance acts (:class:`~adaptdiffuser.diffusion.guidance.Guidance`)."""
+    the block is each episode's :func:`guided_blocks` by ``next_block``; ``on`` says where the guidance acts
+    (:class:`~adaptdiffuser.diffusion.guidance.Guidance`)."""
     if next_block not in ("in_turn", "free"):
         raise ValueError(f"next_block must be 'in_turn' or 'free', got {next_block!r}")
 
     def make(stretch: int, offset: int, obs: np.ndarray) -> GuidanceBase:
-        free = next_block == "free"
-        blocks = [block_to_place(o) for o in obs] if free else [stretch % N_BLOCKS] * len(obs)
+        blocks = guided_blocks(next_block, stretch, obs)
         return planner.guidance(PlaceObjective(blocks, max(0, first - offset)), alpha, on)
 
     return make

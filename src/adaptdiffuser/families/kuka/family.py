@@ -84,28 +84,35 @@ class KukaFamily(Family):
 
         return task_controller(task, planner, task.evaluate.seed)
 
+    def pick_place_episodes(
+        self, task: TaskParams, planner: Any, alpha: float, setup: int, record: bool = False, progress: bool = False
+    ) -> tuple[EpisodeBatchResult, Controller]:
+        """The pick-and-place evaluation episodes of one setup (``pick_place`` settings), guided with scale
+        ``alpha``; with the controller that ran them (its ``recorded`` plans when ``record``)."""
+        from adaptdiffuser.families.kuka.execution import place_guidance, task_controller
+
+        p = task.settings.pick_place
+        guidance = place_guidance(planner, alpha, int(p.guide_from * planner.horizon), p.next_block, p.guide_on)
+        controller = task_controller(task, planner, p.seed, guidance, record)
+        result = run_episodes(
+            lambda: self.make_simulator(task, "pick_place", setup),
+            controller,
+            p.episodes,
+            p.seed,
+            p.batch_size,
+            desc=f"pick-and-place setup {setup}",
+            progress=progress,
+        )
+        return result, controller
+
     def evaluate_unseen(self, task, planner, alpha, ref, pictures, title, progress):
         """Pick-and-place (no demonstrations) in each setup of ``pick_place.setups``, guided with scale ``alpha``:
         score = blocks placed / 4 x 100, over all episodes (``score_*``) and per setup (``setup<k>_score_*``). No
         pictures."""
-        from adaptdiffuser.families.kuka.execution import place_guidance, task_controller
-
-        p = task.settings.pick_place
-        first = int(p.guide_from * planner.horizon)
         metrics: dict[str, float] = {}
         every: list[np.ndarray] = []
-        for setup in p.setups:
-            guidance = place_guidance(planner, alpha, first, p.next_block, p.guide_on)
-            controller = task_controller(task, planner, p.seed, guidance)
-            result = run_episodes(
-                lambda setup=setup: self.make_simulator(task, "pick_place", setup),
-                controller,
-                p.episodes,
-                p.seed,
-                p.batch_size,
-                desc=f"pick-and-place setup {setup}",
-                progress=progress,
-            )
+        for setup in task.settings.pick_place.setups:
+            result, _ = self.pick_place_episodes(task, planner, alpha, setup, progress=progress)
             scores = normalized_score(np.asarray(result.returns), 0.0, float(N_BLOCKS))
             metrics[f"setup{setup}_score_mean"] = float(np.mean(scores))
             metrics[f"setup{setup}_score_stderr"] = standard_error(scores)
