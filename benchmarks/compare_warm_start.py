@@ -11,14 +11,18 @@ confirm once on the evaluation seed):
 * replanning from pure noise, and warm-started at each K of ``--warm-steps``, all at the task's guide scale; the
   gain of each K over pure noise is paired per episode;
 * each guide scale of ``--scales`` (0 = unguided: the first action of the best of N unguided plans by value),
-  replanning as the task does (its own ``warm_start_step``), paired with the task's own scale.
+  replanning as the task does (its own ``warm_start_step``), paired with the task's own scale;
+* each guide scale of ``--noise-scales``, replanning from pure noise, paired with pure noise at the task's scale.
+  Guidance acts at the steps ``t >= t_stopgrad`` only, so a warm start at K = ``t_stopgrad`` guides one step of
+  its chain: this is where a scale acts on the whole chain, as in Diffuser.
 
 Over the training seeds: the mean of the per-seed scores and paired gains, +- their standard error over seeds.
 Every evaluation is written to ``--out`` (JSON) as soon as it is measured; the same command continues a stopped
 comparison.
 
     python benchmarks/compare_warm_start.py WORKSPACE [--task hopper-medium] [--warm-steps 2 4 8]
-        [--scales 0 0.3] [--seed 7] [--episodes 10] [--phase 0] [--training-seeds 0 1 2] [--out FILE]
+        [--scales 0 0.3] [--noise-scales 0 0.3] [--seed 7] [--episodes 10] [--phase 0] [--training-seeds 0 1 2]
+        [--out FILE]
 
 WORKSPACE is a pipeline folder after `dvc repro` (its params.yaml, models/, value functions and reference.json).
 """
@@ -44,9 +48,16 @@ from adaptdiffuser.planning import Planner
 NOISE = "pure noise"
 
 
-def variants(warm_steps: list[int], scales: list[float], own_scale: float, own_warm: int | None) -> dict[str, dict]:
+def variants(
+    warm_steps: list[int],
+    scales: list[float],
+    own_scale: float,
+    own_warm: int | None,
+    noise_scales: tuple[float, ...] = (),
+) -> dict[str, dict]:
     """``label -> {warm, scale, over}``: pure noise and each warm start at the task's scale (over pure noise), then
-    each scale of ``scales`` replanning as the task does, over the task's own scale."""
+    each scale of ``scales`` replanning as the task does, over the task's own scale, and each of ``noise_scales``
+    replanning from pure noise, over pure noise at the task's scale."""
     table: dict[str, dict] = {NOISE: {"warm": None, "scale": own_scale, "over": None}}
     own = NOISE
     if own_warm is not None:
@@ -58,6 +69,9 @@ def variants(warm_steps: list[int], scales: list[float], own_scale: float, own_w
     for scale in scales:
         if scale != own_scale:
             table[f"scale {scale:g}"] = {"warm": own_warm, "scale": scale, "over": own}
+    for scale in noise_scales:
+        if scale != own_scale:
+            table[f"pure noise, scale {scale:g}"] = {"warm": None, "scale": scale, "over": NOISE}
     if own_warm is not None and own_warm in warm_steps:
         table[own]["over"] = NOISE  # the task's own warm start is one of those compared with pure noise
     return table
@@ -86,6 +100,13 @@ def main() -> None:
     add_workspace_args(parser)
     parser.add_argument("--warm-steps", type=int, nargs="+", default=[2, 4, 8])
     parser.add_argument("--scales", type=float, nargs="*", default=[], help="guide scales to compare (0: unguided)")
+    parser.add_argument(
+        "--noise-scales",
+        type=float,
+        nargs="*",
+        default=[],
+        help="guide scales to compare replanning from pure noise (guided over the whole chain)",
+    )
     parser.add_argument("--training-seeds", type=int, nargs="+", default=None, help="default: --training-seed")
     parser.add_argument("--out", type=Path, default=None, help="default: compare_warm_start.json in WORKSPACE")
     args = parser.parse_args()
@@ -97,7 +118,8 @@ def main() -> None:
         args.training_seed = seed
         ws = load_trained(args)
         base = ws.task()
-        table = variants(args.warm_steps, args.scales, base.settings.guide.scale, base.settings.guide.warm_start_step)
+        guide = base.settings.guide
+        table = variants(args.warm_steps, args.scales, guide.scale, guide.warm_start_step, tuple(args.noise_scales))
         setup = {"task": ws.name, "phase": args.phase, "episode_seed": args.seed, "episodes": base.evaluate.episodes}
         if any(record.get(key, value) != value for key, value in setup.items()):
             parser.error(f"{out} holds another comparison ({ {k: record.get(k) for k in setup} }): give --out")
