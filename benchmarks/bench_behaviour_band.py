@@ -8,7 +8,7 @@ went back, and the time (printed, never asserted). Writes every figure as JSON a
 the same ``--out``, it skips the variations already there (a stopped run goes on).
 
     python benchmarks/bench_behaviour_band.py [--tasks hopper-medium walker2d-medium halfcheetah-medium]
-        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 600000] [--algorithm ppo]
+        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 600000] [--algorithm ppo] [--quiet]
 
 ``--algorithm sac`` (or ``td3``) trains the behaviour policy with that stable-baselines3 algorithm instead of PPO
 (``task.<name>.behaviour.algorithm``): D4RL's own medium policies are SAC's.
@@ -41,6 +41,7 @@ def main() -> None:
     parser.add_argument("--max-train-steps", type=int, default=600_000)
     parser.add_argument("--algorithm", default="ppo", choices=["ppo", "sac", "td3"])
     parser.add_argument("--out", default="bench_behaviour_band.json")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars (training, recording)")
     args = parser.parse_args()
     out = Path(args.out)
     results: list[dict] = json.loads(out.read_text()) if out.exists() else []  # a stopped run goes on from there
@@ -63,7 +64,7 @@ def main() -> None:
             start = time.perf_counter()
             with tempfile.TemporaryDirectory() as tmp:
                 try:
-                    traj = collect_locomotion_dataset(task, Path(tmp), settings)
+                    traj = collect_locomotion_dataset(task, Path(tmp), settings, progress=not args.quiet)
                 except StageError as err:
                     row |= {"error": str(err), "wall_s": time.perf_counter() - start}
                     print(f"{task} seed {seed} threads {threads}: {err}", flush=True)
