@@ -22,7 +22,7 @@ output and resume files, so variants of one task and seed never share a resume s
 
     python benchmarks/learning_curve.py WORKSPACE --task maze2d-medium --steps 40000 --every 4000
         [--seed 7] [--episodes 30] [--training-seed 0] [--set pretrain.lr=0.001 ...] [--label NAME]
-        [--out curve.jsonl] [--device cpu]
+        [--out curve.jsonl] [--device cpu] [--quiet]
 
 WORKSPACE is a pipeline folder whose task has its dataset and reference (`dvc repro reference@<task>`).
 """
@@ -72,6 +72,7 @@ def main() -> None:
     parser.add_argument("--label", default=None, help="the variant's name in the output and resume files")
     parser.add_argument("--out", type=Path, default=None, help="default: learning_curve-<task>[-label]-seed<s>.jsonl")
     parser.add_argument("--device", default="auto")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar while training")
     args = parser.parse_args()
     root = args.workspace.resolve()
     raw = yaml.safe_load((root / "params.yaml").read_text())
@@ -149,7 +150,7 @@ def main() -> None:
             print(json.dumps(point), flush=True)
         clock["cpu_since"], clock["since"] = time.process_time(), time.perf_counter()
 
-    train(bundle, dataset, cfg, device, resume, run_id, progress=False, compiled=params.compile.training,
+    train(bundle, dataset, cfg, device, resume, run_id, progress=not args.quiet, compiled=params.compile.training,
           on_checkpoint=evaluate)  # fmt: skip
     resume.unlink(missing_ok=True)
 

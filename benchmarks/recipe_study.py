@@ -70,6 +70,8 @@ def run_curve(args: argparse.Namespace, name: str, recipe: dict[str, Any], seed:
                "--steps", str(recipe["steps"]), "--every", str(min(args.every, recipe["steps"])),
                "--seed", str(args.seed), "--episodes", str(args.episodes), "--training-seed", str(seed),
                "--label", f"recipe-{name}", "--out", str(out), "--device", args.device]  # fmt: skip
+    if args.quiet:
+        command.append("--quiet")
     for key, value in (recipe.get("set") or {}).items():
         command += ["--set", f"{key}={json.dumps(value)}"]
     print(f"== {name}, training seed {seed}: {recipe['steps']} steps {recipe.get('set') or {}}", flush=True)
@@ -145,6 +147,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7, help="episode seed (default 7: validation, not evaluation)")
     parser.add_argument("--out-dir", type=Path, default=Path("recipe-study"))
     parser.add_argument("--device", default="auto")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars while training")
     parser.add_argument("--summary-only", action="store_true", help="summarize and draw what is there, train none")
     args = parser.parse_args()
     recipes = load_recipes(args.recipes)
