@@ -15,7 +15,7 @@ count, so compare recipes measured on one machine), and ``recipes.png`` draws sc
 seeds).
 
     python benchmarks/recipe_study.py WORKSPACE --task maze2d-umaze --recipes benchmarks/recipes/maze2d-umaze.yaml
-        [--training-seeds 0 1 2] [--every 500] [--episodes 50] [--seed 7] [--out-dir recipe-study]
+        [--training-seeds 0 1 2] [--every 500] [--episodes 50] [--seed 7] [--out-dir recipe-study] [--quiet]
 
 A value-guided task (``--task hopper-medium --recipes benchmarks/recipes/hopper-medium.yaml``) trains its value
 function in each curve, and the curve's CPU minutes include it (``value.*`` keys of ``set`` change it).
