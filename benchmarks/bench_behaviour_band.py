@@ -8,7 +8,7 @@ went back, and the time (printed, never asserted). Writes every figure as JSON a
 the same ``--out``, it skips the variations already there (a stopped run goes on).
 
     python benchmarks/bench_behaviour_band.py [--tasks hopper-medium walker2d-medium halfcheetah-medium]
-        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 600000] [--algorithm ppo] [--quiet]
+        [--variations 0:2 0:1 1:2] [--dataset-steps 200000] [--max-train-steps 1000000] [--algorithm ppo] [--quiet]
 
 ``--algorithm sac`` (or ``td3``) trains the behaviour policy with that stable-baselines3 algorithm instead of PPO
 (``task.<name>.behaviour.algorithm``): D4RL's own medium policies are SAC's.
@@ -38,7 +38,7 @@ def main() -> None:
     parser.add_argument("--tasks", nargs="+", default=["hopper-medium", "walker2d-medium", "halfcheetah-medium"])
     parser.add_argument("--variations", nargs="+", default=["0:2", "0:1", "1:2"], help="seed:threads")
     parser.add_argument("--dataset-steps", type=int, default=200_000)
-    parser.add_argument("--max-train-steps", type=int, default=600_000)
+    parser.add_argument("--max-train-steps", type=int, default=BehaviourSettings().max_train_steps)
     parser.add_argument("--algorithm", default="ppo", choices=["ppo", "sac", "td3"])
     parser.add_argument("--out", default="bench_behaviour_band.json")
     parser.add_argument("--quiet", action="store_true", help="no progress bars (training, recording)")
