@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -53,11 +54,12 @@ def variants(
     scales: list[float],
     own_scale: float,
     own_warm: int | None,
-    noise_scales: tuple[float, ...] = (),
+    noise_scales: Sequence[float] = (),
 ) -> dict[str, dict]:
     """``label -> {warm, scale, over}``: pure noise and each warm start at the task's scale (over pure noise), then
     each scale of ``scales`` replanning as the task does, over the task's own scale, and each of ``noise_scales``
-    replanning from pure noise, over pure noise at the task's scale."""
+    replanning from pure noise, over pure noise at the task's scale (a task that replans from pure noise itself
+    has them among ``scales`` already)."""
     table: dict[str, dict] = {NOISE: {"warm": None, "scale": own_scale, "over": None}}
     own = NOISE
     if own_warm is not None:
@@ -70,7 +72,7 @@ def variants(
         if scale != own_scale:
             table[f"scale {scale:g}"] = {"warm": own_warm, "scale": scale, "over": own}
     for scale in noise_scales:
-        if scale != own_scale:
+        if scale != own_scale and not (own_warm is None and scale in scales):
             table[f"pure noise, scale {scale:g}"] = {"warm": None, "scale": scale, "over": NOISE}
     if own_warm is not None and own_warm in warm_steps:
         table[own]["over"] = NOISE  # the task's own warm start is one of those compared with pure noise
@@ -119,7 +121,7 @@ def main() -> None:
         ws = load_trained(args)
         base = ws.task()
         guide = base.settings.guide
-        table = variants(args.warm_steps, args.scales, guide.scale, guide.warm_start_step, tuple(args.noise_scales))
+        table = variants(args.warm_steps, args.scales, guide.scale, guide.warm_start_step, args.noise_scales)
         setup = {"task": ws.name, "phase": args.phase, "episode_seed": args.seed, "episodes": base.evaluate.episodes}
         if any(record.get(key, value) != value for key, value in setup.items()):
             parser.error(f"{out} holds another comparison ({ {k: record.get(k) for k in setup} }): give --out")
