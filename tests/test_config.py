@@ -111,6 +111,7 @@ def test_profile_list() -> None:
         "science",
         "science-medium",
         "science-large",
+        "science-locomotion",
         "science-umaze",
         *PAPER,
     }
@@ -218,6 +219,54 @@ def test_profiles_extend_parts_in_order(tmp_path: Path) -> None:
     assert "extends" not in yaml.safe_load(out.read_text())
     with pytest.raises(ConfigError, match="unknown profile 'parts/a'"):
         apply_profile("parts/a", profiles, tmp_path / "other.yaml")
+
+
+def test_family_defaults_are_expanded_into_each_task_of_the_family(tmp_path: Path) -> None:
+    """Every task entry of a family starts from ``family_defaults.<family>`` (its own keys win, nested keys merged);
+    tasks of other families are untouched; params.yaml holds the whole entries and no ``family_defaults``."""
+    profiles = tmp_path / "profiles"
+    (profiles / "parts").mkdir(parents=True)
+    shutil.copy2(PROFILES / "quick.yaml", profiles)
+    (profiles / "parts" / "loco.yaml").write_text(
+        "family_defaults:\n  locomotion:\n    guide: {n_samples: 5, scale: 0.5}\n    pretrain: {steps: 300}\n"
+    )
+    (profiles / "mine.yaml").write_text(
+        "extends: loco\ntasks: [maze2d-umaze, hopper-medium, walker2d-medium]\nunseen_tasks: [maze2d-umaze]\n"
+        "collect_tasks: [maze2d-umaze, hopper-medium, walker2d-medium]\n"
+        "task:\n  hopper-medium: {family: locomotion}\n"
+        "  walker2d-medium: {family: locomotion, guide: {scale: 0.01}}\n"
+    )
+    out = apply_profile("mine", profiles, tmp_path / "params.yaml")
+    raw = yaml.safe_load(out.read_text())
+    assert "family_defaults" not in raw
+    assert raw["task"]["walker2d-medium"] == {"family": "locomotion", "guide": {"n_samples": 5, "scale": 0.01},
+                                               "pretrain": {"steps": 300}}  # fmt: skip
+    assert "guide" not in raw["task"]["maze2d-umaze"]
+    params = load_params(out)
+    hopper, walker, maze = (params.resolve(t) for t in ("hopper-medium", "walker2d-medium", "maze2d-umaze"))
+    assert (hopper.settings.guide.n_samples, hopper.settings.guide.scale) == (5, 0.5)
+    assert (walker.settings.guide.n_samples, walker.settings.guide.scale) == (5, 0.01)
+    assert hopper.pretrain.steps == walker.pretrain.steps == 300
+    assert maze.pretrain.steps == params.pretrain.steps != 300
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("family_defaults: {robots: {pretrain: {steps: 3}}}\n", "names unknown families \\['robots'\\]"),
+        ("family_defaults: [locomotion]\n", "family_defaults must map a family name"),
+        ("family_defaults: {locomotion: {family: maze2d}}\n", "must not set 'family'"),
+    ],
+)
+def test_bad_family_defaults_are_refused_in_one_line(tmp_path: Path, text: str, message: str) -> None:
+    profiles = tmp_path / "profiles"
+    profiles.mkdir()
+    shutil.copy2(PROFILES / "quick.yaml", profiles)
+    (profiles / "mine.yaml").write_text(text)
+    with pytest.raises(ConfigError, match=message) as err:
+        apply_profile("mine", profiles, tmp_path / "params.yaml")
+    assert len(str(err.value).splitlines()) == 1
+    assert not (tmp_path / "params.yaml").exists()
 
 
 @pytest.mark.parametrize(

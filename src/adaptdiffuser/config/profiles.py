@@ -3,7 +3,12 @@
 A profile may start from shared parts with ``extends: <part>`` or ``extends: [<part>, ...]``: files under
 ``profiles/parts/`` (named without ``.yaml``, e.g. ``two-phases``), overlaid in order before the profile's own keys;
 a part may extend other parts. So a block several profiles share (two evolution phases, Diffuser's training recipe,
-a task's entry) is written once."""
+a task's entry) is written once.
+
+A profile or part may also write ``family_defaults: {<family>: {...}}``: settings every task entry of that family
+starts from (the entry's own keys win), so tasks sharing a scale are written once and differ only where they differ.
+It is expanded into the task entries when the profile is written: ``params.yaml`` holds every task's whole entry, and
+a task's stages still depend on that entry only."""
 
 from __future__ import annotations
 
@@ -20,6 +25,8 @@ from adaptdiffuser.io import atomic_path
 #: the folder of ``profiles/`` holding the parts profiles extend (not profiles themselves)
 PARTS_DIR = "parts"
 NOT_A_MAPPING = "a profile or part must be a mapping of params keys"
+#: the profile key whose per-family settings are expanded into task entries (:func:`expand_family_defaults`)
+FAMILY_DEFAULTS = "family_defaults"
 
 
 def apply_profile(
@@ -43,6 +50,7 @@ def apply_profile(
     merged = base
     for _, overlay in layers:
         merged = deep_merge(merged, overlay)
+    merged = expand_family_defaults(merged, overlay_path)
     if tiny:
         merged = shrink(merged, params_from_dict(merged))
     if merged == base:  # the quick profile itself: keep its comments
@@ -82,3 +90,34 @@ def profile_layers(path: Path, parts_dir: Path, chain: tuple[Path, ...] = ()) ->
         seen = {file for file, _ in layers}
         layers += [layer for layer in profile_layers(part, parts_dir, (*chain, path)) if layer[0] not in seen]
     return [*layers, (path, raw)]
+
+
+def expand_family_defaults(raw: dict, path: Path) -> dict:
+    """``raw`` without its ``family_defaults`` key, each task entry of a family it names merged over that family's
+    defaults (the entry's keys win; ``family`` stays first). ``path`` names the profile in errors."""
+    from adaptdiffuser.family_registry import FAMILIES
+
+    defaults = raw.get(FAMILY_DEFAULTS)
+    if defaults is None:
+        return raw
+    if not isinstance(defaults, dict) or not all(isinstance(v, dict) for v in defaults.values()):
+        raise ConfigError(f"{path}: {FAMILY_DEFAULTS} must map a family name to that family's task settings")
+    unknown = sorted(set(defaults) - set(FAMILIES))
+    if unknown:
+        raise ConfigError(f"{path}: {FAMILY_DEFAULTS} names unknown families {unknown}; families: {sorted(FAMILIES)}")
+    if any("family" in settings for settings in defaults.values()):
+        raise ConfigError(f"{path}: {FAMILY_DEFAULTS}.<family> must not set 'family' (it is the key above it)")
+    expanded = {key: value for key, value in raw.items() if key != FAMILY_DEFAULTS}
+    tasks = raw.get("task")
+    if isinstance(tasks, dict):
+        expanded["task"] = {
+            name: _with_defaults(entry, defaults) if isinstance(entry, dict) else entry for name, entry in tasks.items()
+        }
+    return expanded
+
+
+def _with_defaults(entry: dict, defaults: dict) -> dict:
+    family = entry.get("family")
+    if family not in defaults:
+        return entry
+    return {"family": family, **deep_merge(defaults[family], entry)}
