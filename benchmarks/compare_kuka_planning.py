@@ -17,7 +17,8 @@ episode (mean), the share of full towers, the CPU seconds, and the gain over the
         [--variants FILE.yaml] [--pick-place | --pick-place-only] [--out FILE.json]
 
 WORKSPACE is a pipeline folder holding a trained KUKA model (after `dvc repro` of the quick-kuka profile). A
-variants file maps names to dotted settings, e.g. ``pinned: {planning.pin_resting_blocks: true}``.
+variants file maps names to dotted settings, e.g. ``pinned: {planning.pin_resting_blocks: true}``; a variant's
+``alpha`` is the guide scale of its pick-and-place episodes (the workspace's ``alpha`` otherwise).
 """
 
 from __future__ import annotations
@@ -77,9 +78,11 @@ def main() -> None:
     )
     rows, first = [], None
     for name, settings in variants.items():
+        settings = dict(settings)
+        alpha = float(settings.pop("alpha", ws.raw["alpha"]))  # pick-and-place guide scale
         task = ws.task_with(settings)
         planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
-        row: dict[str, Any] = {"variant": name, "settings": settings}
+        row: dict[str, Any] = {"variant": name, "settings": settings, "alpha": alpha}
         if not args.pick_place_only:
             cpu = time.process_time()
             result = run_episodes(
@@ -97,7 +100,7 @@ def main() -> None:
             row["over_first"] = paired_gain(scores, first)
         if args.pick_place:
             cpu = time.process_time()
-            unseen = family.evaluate_unseen(task, planner, ws.raw["alpha"], ref, 0, name, False)
+            unseen = family.evaluate_unseen(task, planner, alpha, ref, 0, name, False)
             row["pick_place"] = unseen | {"cpu_s": round(time.process_time() - cpu, 1)}
         rows.append(row)
         print(json.dumps(row), flush=True)

@@ -22,7 +22,13 @@ from adaptdiffuser.config import (
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.families.kuka.execution import ReplanningController, place_guidance, resting_blocks_pinned
+from adaptdiffuser.families.kuka.execution import (
+    ReplanningController,
+    held_block_condition,
+    place_condition,
+    place_guidance,
+    resting_blocks_pinned,
+)
 from adaptdiffuser.families.kuka.params import KukaTaskParams
 from adaptdiffuser.families.kuka.scene import (
     BLOCK_DIMS,
@@ -172,7 +178,13 @@ def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(
             {
                 "diffusion.horizon": HORIZON,
                 "planning": {"pin_resting_blocks": True, "replan_every": 5, "follow_blocks": True},
-                "pick_place": {"setups": [2], "episodes": 1, "batch_size": 1, "next_block": "free"},
+                "pick_place": {
+                    "setups": [2],
+                    "episodes": 1,
+                    "batch_size": 1,
+                    "next_block": "free",
+                    "hold": [0.25, 0.75],
+                },
             },
             tmp_path,
         )  # fmt: skip
@@ -186,6 +198,12 @@ def test_the_task_planning_settings_reach_evaluation_and_pick_and_place(
     assert len(planner.plans) == plans_per_episode and all(p is not None for p in planner.projections)
     tower_top = block_position_columns(N_BLOCKS - 1).start  # setup 2 starts as a tower: its top block goes first
     assert planner.guidances[0].objective.columns.tolist() == [tower_top]
+    # pick_place.hold: the first plan holds the tower's top block over steps 4-11 of 16 (its projection is the
+    # condition, then pinning)
+    first = planner.plans[0]
+    flags = first[:, :, list(FLAG_COLUMNS)]
+    assert np.allclose(flags[0, 4:12, N_BLOCKS - 1], 1.0) and np.allclose(flags[0, 4:12, : N_BLOCKS - 1], 0.0)
+    assert np.allclose(flags[0, 12:], 0.0)
 
 
 def kuka_raw(task_settings: dict, tmp_path: Path) -> dict:
@@ -229,3 +247,48 @@ def test_free_pick_and_place_guidance_moves_each_episodes_next_block(planner: Re
     assert guided.objective.columns.tolist() == [block_position_columns(b).start for b in (0, 2)]
     with pytest.raises(ValueError, match="next_block"):
         place_guidance(planner, 2.0, first=8, next_block="random")
+
+
+def test_the_hold_condition_holds_each_plans_block_over_its_steps_then_lets_go(planner: RecordingPlanner) -> None:
+    """``held_block_condition``: plan i's block flag on (raw 1) and the others off (raw 0) over [first, last),
+    every flag off from last on; nothing else changes; sampled plans keep it (inpainted at every step)."""
+    x = torch.rand(2, HORIZON, OBS_DIM) * 2 - 1
+    y = held_block_condition(planner, [2, 0], first=3, last=9)(x)
+    raw = planner.normalizer.unnormalize(y.numpy())
+    flags = raw[:, :, list(FLAG_COLUMNS)]
+    expected = np.zeros((2, 6, N_BLOCKS))
+    expected[0, :, 2], expected[1, :, 0] = 1.0, 1.0
+    np.testing.assert_allclose(flags[:, 3:9], expected, atol=1e-6)
+    np.testing.assert_allclose(flags[:, 9:], 0.0, atol=1e-6)
+    assert torch.equal(y[:, :3], x[:, :3])  # before the hold: free
+    others = [c for c in range(OBS_DIM) if c not in FLAG_COLUMNS]
+    assert torch.equal(y[:, :, others], x[:, :, others])
+
+    sim = KukaSimulator(KukaTaskParams())
+    start = sim.reset(np.random.default_rng(5))
+    sim.close()
+    plans = planner.plan(np.stack([start, start]), None, [1, 2], project=held_block_condition(planner, [1, 3], 3, 9))
+    assert (plans[0, 3:9, FLAG_COLUMNS[1]] > 0.5).all() and (plans[1, 3:9, FLAG_COLUMNS[3]] > 0.5).all()
+    assert (plans[:, 9:, list(FLAG_COLUMNS)] < 0.5).all()
+
+
+def test_the_hold_condition_follows_the_stretch_and_each_episodes_block(planner: RecordingPlanner) -> None:
+    """A plan drawn part-way into a stretch holds that stretch's block over the stretch's steps, shifted; with
+    ``free`` each episode holds the block its own scene needs next."""
+    obs = np.zeros((2, OBS_DIM))
+    for i in range(N_BLOCKS):
+        obs[:, block_position_columns(i)] = [0.0, 0.4 + 0.3 * i, 0.03]
+    obs[1, FLAG_COLUMNS[2]] = 1.0  # episode 1 carries block 2
+    x = torch.zeros(2, HORIZON, OBS_DIM)
+    late = place_condition(planner, first=4, last=12, next_block="free")(0, 6, obs)(x)
+    flags = planner.normalizer.unnormalize(late.numpy())[:, :, list(FLAG_COLUMNS)]
+    assert np.allclose(flags[0, :6, 0], 1.0) and np.allclose(flags[1, :6, 2], 1.0)  # its steps 0-5: stretch's 6-11
+    assert np.allclose(flags[0, :6, [1, 2, 3]], 0.0) and np.allclose(flags[:, 6:], 0.0)
+    in_turn = place_condition(planner, first=4, last=12)(1, 0, obs)(x)
+    flags = planner.normalizer.unnormalize(in_turn.numpy())[:, :, list(FLAG_COLUMNS)]
+    assert np.allclose(flags[:, 4:12, 1], 1.0) and np.allclose(flags[:, 4:12][:, :, [0, 2, 3]], 0.0)
+
+
+def test_a_hold_span_must_be_ordered(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="hold must be"):
+        params_from_dict(kuka_raw({"pick_place.hold": [0.75, 0.25]}, tmp_path))

@@ -24,9 +24,8 @@ from adaptdiffuser.families.kuka.dataset import state_episodes
 from adaptdiffuser.families.kuka.execution import (
     commands_following_blocks,
     held_block,
-    place_guidance,
+    pick_place_controller,
     plan_commands,
-    task_controller,
 )
 from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_JOINTS, block_position_columns
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
@@ -73,7 +72,6 @@ def generate_episodes(
     ``(seed, i)`` in setup :func:`setup_of_tasks`), batched by ``cfg.batch_size``. Row ``t`` of an episode is the
     state planned for step ``t`` (row 0: the start); the reward column is zero (unknown until executed)."""
     p = task.settings.pick_place
-    first = int(p.guide_from * planner.horizon)
     setups = setup_of_tasks(cfg.tasks, p.setups)
     plans: list[np.ndarray] = []
     placed: list[float] = []
@@ -81,8 +79,7 @@ def generate_episodes(
         tasks = np.flatnonzero(setups == setup)
         if not len(tasks):
             continue
-        guidance = place_guidance(planner, alpha, first, p.next_block, p.guide_on)
-        controller = task_controller(task, planner, derive_seed(seed, setup), guidance, record=True)
+        controller = pick_place_controller(task, planner, alpha, derive_seed(seed, setup), record=True)
         offset = int(tasks[0])
         result = run_episodes(
             lambda setup=setup: make_simulator(task, "pick_place", setup),

@@ -105,15 +105,37 @@ def resting_blocks_pinned(planner: Planner) -> Projection:
     return project
 
 
+def held_block_condition(planner: Planner, blocks: Sequence[int], first: int, last: int) -> Projection:
+    """Plan ``i`` picks block ``blocks[i]`` over steps ``first`` to ``last - 1`` and lets go at ``last``: that
+    block's suction flag on and the other blocks' off over those steps, every flag off from ``last`` on (inpainted
+    at every denoising step, as the start state is). Works on ``planner``'s normalized trajectories."""
+    act, normalizer = planner.act_dim, planner.normalizer
+    flags = [act + c for c in FLAG_COLUMNS]
+    rows = np.zeros((len(blocks) + 1, act + OBS_DIM))  # one row per plan, then all flags off
+    rows[np.arange(len(blocks)), [flags[b] for b in blocks]] = 1.0
+    values = torch.as_tensor(normalizer.normalize(rows)[:, flags], dtype=planner.dtype, device=planner.device)
+    holding, off = values[:-1, None, :], values[-1]
+    flag_index = torch.tensor(flags, device=planner.device)
+
+    def project(x: torch.Tensor) -> torch.Tensor:
+        x = x.clone()
+        x[:, first:last, flag_index] = holding.expand(-1, max(0, min(last, x.shape[1]) - first), -1)
+        x[:, last:, flag_index] = off
+        return x
+
+    return project
+
+
 class ReplanningController(Controller):
     """Plans ``horizon`` states from the current observation and executes them open loop, one planned state per
     step; replans every ``replan_every`` steps (default ``horizon - 1``, the whole plan, so ``replans`` plans fill an
     episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, o, obs)`` gives the guidance
     of a plan drawn ``o`` steps into the ``k``-th stretch of ``horizon - 1`` steps from observations ``obs``
-    ``[n, 39]`` (or None); each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given;
-    with ``follow_blocks`` the arm is commanded by :func:`commands_following_blocks` instead of the planned joints.
-    With ``record``, :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the
-    state each step was commanded to reach), episodes in the order they ran."""
+    ``[n, 39]`` (or None); each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given,
+    after ``condition(k, o, obs)`` (e.g. :func:`held_block_condition`, or None) when that is given; with
+    ``follow_blocks`` the arm is commanded by :func:`commands_following_blocks` instead of the planned joints. With
+    ``record``, :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the state
+    each step was commanded to reach), episodes in the order they ran."""
 
     def __init__(
         self,
@@ -124,6 +146,7 @@ class ReplanningController(Controller):
         project: Projection | None = None,
         replan_every: int | None = None,
         follow_blocks: bool = False,
+        condition: Callable[[int, int, np.ndarray], Projection | None] | None = None,
     ) -> None:
         self.planner = planner
         self.seed = seed
@@ -133,6 +156,7 @@ class ReplanningController(Controller):
         if not 0 < self.every <= self.span:
             raise ValueError(f"replan_every must be in [1, {self.span}] (horizon - 1), got {replan_every}")
         self.project = project
+        self.condition = condition
         self.follow_blocks = follow_blocks
         self.record = record
         self._rows: list[list[np.ndarray]] = []
@@ -156,7 +180,9 @@ class ReplanningController(Controller):
             seeds = [derive_seed(self.seed, e, replan) for e in self.episodes]
             stretch, offset = divmod(t, self.span)
             guidance = self.guidance(stretch, offset, obs) if self.guidance is not None else None
-            self.plans = self.planner.plan(obs, None, seeds, guidance, self.project)[:, :, self.planner.act_dim :]
+            condition = self.condition(stretch, offset, obs) if self.condition is not None else None
+            project = _then(condition, self.project)
+            self.plans = self.planner.plan(obs, None, seeds, guidance, project)[:, :, self.planner.act_dim :]
             if self.first_plans is None:
                 self.first_plans = self.plans.copy()
         commanded = self.plans[:, step + 1]
@@ -166,6 +192,13 @@ class ReplanningController(Controller):
         if self.follow_blocks:
             return commands_following_blocks([env.scene for env in envs], obs, commanded)
         return plan_commands(commanded)
+
+
+def _then(first: Projection | None, second: Projection | None) -> Projection | None:
+    """``second`` applied after ``first`` (either may be None)."""
+    if first is None or second is None:
+        return first or second
+    return lambda x: second(first(x))
 
 
 def block_to_place(obs: np.ndarray) -> int:
@@ -206,14 +239,44 @@ def place_guidance(
     return make
 
 
+def place_condition(
+    planner: Planner, first: int, last: int, next_block: str = "in_turn"
+) -> Callable[[int, int, np.ndarray], Projection]:
+    """Pick-and-place conditioning: the plans of stretch ``k`` hold each episode's :func:`guided_blocks` block over
+    the stretch's steps ``first`` to ``last - 1`` and let go at ``last`` (:func:`held_block_condition`; a plan drawn
+    ``o`` steps into the stretch: its steps ``first - o`` to ``last - o``)."""
+
+    def make(stretch: int, offset: int, obs: np.ndarray) -> Projection:
+        blocks = guided_blocks(next_block, stretch, obs)
+        return held_block_condition(planner, blocks, max(0, first - offset), max(0, last - offset))
+
+    return make
+
+
 def task_controller(
     task: TaskParams,
     planner: Planner,
     seed: int,
     guidance: Callable[[int, int, int], GuidanceBase | None] | None = None,
     record: bool = False,
+    condition: Callable[[int, int, np.ndarray], Projection | None] | None = None,
 ) -> ReplanningController:
     """The controller of a KUKA task's plans, as its ``planning`` settings say (every evaluation and generation)."""
     p = task.settings.planning
     project = resting_blocks_pinned(planner) if p.pin_resting_blocks else None
-    return ReplanningController(planner, seed, guidance, record, project, p.replan_every, p.follow_blocks)
+    return ReplanningController(planner, seed, guidance, record, project, p.replan_every, p.follow_blocks, condition)
+
+
+def pick_place_controller(
+    task: TaskParams, planner: Planner, alpha: float, seed: int, record: bool = False
+) -> ReplanningController:
+    """The controller of pick-and-place episodes (evaluation and generation), as the ``pick_place`` settings say:
+    guided with scale ``alpha`` from ``guide_from``, and conditioned on holding the guided block over ``hold`` when
+    that is set."""
+    p = task.settings.pick_place
+    horizon = planner.horizon
+    guidance = place_guidance(planner, alpha, int(p.guide_from * horizon), p.next_block, p.guide_on)
+    condition = None
+    if p.hold is not None:
+        condition = place_condition(planner, int(p.hold[0] * horizon), int(p.hold[1] * horizon), p.next_block)
+    return task_controller(task, planner, seed, guidance, record, condition)

@@ -89,11 +89,10 @@ class KukaFamily(Family):
     ) -> tuple[EpisodeBatchResult, Controller]:
         """The pick-and-place evaluation episodes of one setup (``pick_place`` settings), guided with scale
         ``alpha``; with the controller that ran them (its ``recorded`` plans when ``record``)."""
-        from adaptdiffuser.families.kuka.execution import place_guidance, task_controller
+        from adaptdiffuser.families.kuka.execution import pick_place_controller
 
         p = task.settings.pick_place
-        guidance = place_guidance(planner, alpha, int(p.guide_from * planner.horizon), p.next_block, p.guide_on)
-        controller = task_controller(task, planner, p.seed, guidance, record)
+        controller = pick_place_controller(task, planner, alpha, p.seed, record)
         result = run_episodes(
             lambda: self.make_simulator(task, "pick_place", setup),
             controller,

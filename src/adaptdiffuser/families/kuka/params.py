@@ -121,7 +121,18 @@ class PickPlaceSettings(BaseModel):
     #: where the guidance acts: ``mean``, each denoising step's mean scaled by its variance (the paper's Eq. 5);
     #: ``x0``, the denoiser's clean estimate at every step (``alpha`` then means a much smaller pull per step)
     guide_on: Literal["mean", "x0"] = "mean"
+    #: condition each plan on picking the guided block: its suction flag on and the other blocks' off over the plan
+    #: steps between these two fractions of the horizon, every flag off after (inpainted, as the start is); null: no
+    #: condition (the paper: guidance alone, which seldom makes the plan pick the guided block, docs/kuka.md)
+    hold: Annotated[list[Annotated[float, Field(ge=0, le=1)]], Field(min_length=2, max_length=2)] | None = None
     batch_size: int = Field(20, gt=0)
+
+    @field_validator("hold")
+    @classmethod
+    def _span(cls, hold: list[float] | None) -> list[float] | None:
+        if hold is not None and hold[0] >= hold[1]:
+            raise ValueError(f"hold must be [from, to] fractions of the horizon with from < to, got {hold}")
+        return hold
 
 
 class SelectionSettings(BaseModel):
