@@ -128,6 +128,39 @@ def test_science_maze_runs_both_recipes_on_one_phase0_and_one_set_of_controls(tm
     assert json.loads((science / f"{MAZE}-rollouts.json").read_text())[MAZE] == second
 
 
+@pytest.mark.e2e
+def test_science_locomotion_evolves_each_task_on_one_phase0(tmp_path: Path) -> None:
+    """scripts/science_locomotion.sh on the science-locomotion profile at tiny scale (HalfCheetah left out: its
+    1000-step evaluation episodes take most of the time, and it only ever runs phase 0): Walker2d's phases, then
+    Hopper's, on the phase 0 the first run computed for every task."""
+
+    def without_halfcheetah(path: Path) -> None:
+        raw = yaml.safe_load(path.read_text())
+        for key in ("tasks", "collect_tasks"):
+            raw[key] = [task for task in raw[key] if task != "halfcheetah-medium"]
+        path.write_text(yaml.safe_dump(raw, sort_keys=False))
+
+    project = make_smoke_project(tmp_path, run_tool, edit=without_halfcheetah, profile="science-locomotion", tiny=True)
+    (project / "scripts").mkdir()
+    shutil.copy2(REPO / "scripts" / "science_locomotion.sh", project / "scripts")
+    log = run_tool(["bash", "scripts/science_locomotion.sh"], project)
+
+    walker_run, hopper_run = log.split("evolve=hopper-medium", 1)
+    for task in ("hopper-medium", "walker2d-medium"):
+        assert f"Running stage 'pretrain@{task}'" in walker_run and f"Running stage 'pretrain@{task}'" not in hopper_run
+    for stage in ("generate@phase1", "finetune@phase1", "control@phase1"):
+        assert f"Running stage '{stage}'" in walker_run and f"Running stage '{stage}'" in hopper_run
+    science = project / "metrics" / "science"
+    walker = json.loads((science / "walker2d-medium.json").read_text())
+    hopper = json.loads((science / "hopper-medium.json").read_text())
+    cheetah = json.loads((science / "halfcheetah-medium.json").read_text())
+    assert "phase_1" in walker["walker2d-medium"] and "phase_1" not in walker["hopper-medium"]
+    assert "phase_1" in hopper["hopper-medium"] and "phase_1" not in hopper["walker2d-medium"]
+    assert walker["hopper-medium"]["phase_0"] == hopper["hopper-medium"]["phase_0"]  # one phase 0
+    assert cheetah == hopper  # the last summary: every task's phase 0
+    assert yaml.safe_load((project / "params.yaml").read_text())["evolve"] == "walker2d-medium"
+
+
 def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
     repo = tmp_path / "repo"
     repo.mkdir()
