@@ -282,8 +282,13 @@ def test_the_hold_condition_follows_the_stretch_and_each_episodes_block(planner:
     x = torch.zeros(2, HORIZON, OBS_DIM)
     late = place_condition(planner, first=4, last=12, next_block="free")(0, 6, obs)(x)
     flags = planner.normalizer.unnormalize(late.numpy())[:, :, list(FLAG_COLUMNS)]
-    assert np.allclose(flags[0, :6, 0], 1.0) and np.allclose(flags[1, :6, 2], 1.0)  # its steps 0-5: stretch's 6-11
-    assert np.allclose(flags[0, :6, [1, 2, 3]], 0.0) and np.allclose(flags[:, 6:], 0.0)
+    # its steps 1-5 are the stretch's 7-11; step 0, the real start, is left as it is
+    assert torch.equal(late[:, 0], x[:, 0])
+    assert np.allclose(flags[0, 1:6, 0], 1.0) and np.allclose(flags[1, 1:6, 2], 1.0)
+    assert np.allclose(flags[0, 1:6, [1, 2, 3]], 0.0) and np.allclose(flags[:, 6:], 0.0)
+    past = place_condition(planner, first=4, last=12)(0, 14, obs)(x)  # drawn after the span: every flag off
+    assert torch.equal(past[:, 0], x[:, 0])
+    assert np.allclose(planner.normalizer.unnormalize(past.numpy())[:, 1:, list(FLAG_COLUMNS)], 0.0)
     in_turn = place_condition(planner, first=4, last=12)(1, 0, obs)(x)
     flags = planner.normalizer.unnormalize(in_turn.numpy())[:, :, list(FLAG_COLUMNS)]
     assert np.allclose(flags[:, 4:12, 1], 1.0) and np.allclose(flags[:, 4:12][:, :, [0, 2, 3]], 0.0)

@@ -108,7 +108,9 @@ def resting_blocks_pinned(planner: Planner) -> Projection:
 def held_block_condition(planner: Planner, blocks: Sequence[int], first: int, last: int) -> Projection:
     """Plan ``i`` picks block ``blocks[i]`` over steps ``first`` to ``last - 1`` and lets go at ``last``: that
     block's suction flag on and the other blocks' off over those steps, every flag off from ``last`` on (inpainted
-    at every denoising step, as the start state is). Works on ``planner``'s normalized trajectories."""
+    at every denoising step, as the start state is). Step 0, the real start, is never changed. Works on
+    ``planner``'s normalized trajectories."""
+    first, last = max(1, first), max(1, last)
     act, normalizer = planner.act_dim, planner.normalizer
     flags = [act + c for c in FLAG_COLUMNS]
     rows = np.zeros((len(blocks) + 1, act + OBS_DIM))  # one row per plan, then all flags off
