@@ -12,7 +12,9 @@ confirm once on the evaluation seed):
   gain of each K over pure noise is paired per episode;
 * each guide scale of ``--scales`` (0 = unguided: the first action of the best of N unguided plans by value),
   replanning as the task does (its own ``warm_start_step``), paired with the task's own scale;
-* each guide scale of ``--noise-scales``, replanning from pure noise, paired with pure noise at the task's scale.
+* each guide scale of ``--noise-scales``, replanning from pure noise, paired with pure noise at the task's scale;
+* each number of samples per decision of ``--samples`` (Diffuser: 64), replanning as the task does at its scale,
+  paired with the task's own number.
   Guidance acts at the steps ``t >= t_stopgrad`` only, so a warm start at K = ``t_stopgrad`` guides one step of
   its chain: this is where a scale acts on the whole chain, as in Diffuser.
 
@@ -21,8 +23,8 @@ Every evaluation is written to ``--out`` (JSON) as soon as it is measured; the s
 comparison.
 
     python benchmarks/compare_warm_start.py WORKSPACE [--task hopper-medium] [--warm-steps 2 4 8]
-        [--scales 0 0.3] [--noise-scales 0 0.3] [--seed 7] [--episodes 10] [--phase 0] [--training-seeds 0 1 2]
-        [--out FILE]
+        [--scales 0 0.3] [--noise-scales 0 0.3] [--samples 64] [--seed 7] [--episodes 10] [--phase 0]
+        [--training-seeds 0 1 2] [--out FILE]
 
 WORKSPACE is a pipeline folder after `dvc repro` (its params.yaml, models/, value functions and reference.json).
 """
@@ -55,11 +57,14 @@ def variants(
     own_scale: float,
     own_warm: int | None,
     noise_scales: Sequence[float] = (),
+    samples: Sequence[int] = (),
+    own_samples: int | None = None,
 ) -> dict[str, dict]:
     """``label -> {warm, scale, over}``: pure noise and each warm start at the task's scale (over pure noise), then
     each scale of ``scales`` replanning as the task does, over the task's own scale, and each of ``noise_scales``
     replanning from pure noise, over pure noise at the task's scale (a task that replans from pure noise itself
-    has them among ``scales`` already)."""
+    has them among ``scales`` already), and each of ``samples`` (plans per decision) replanning as the task does, over
+    the task's own ``own_samples``. A setting's ``samples`` None is the task's."""
     table: dict[str, dict] = {NOISE: {"warm": None, "scale": own_scale, "over": None}}
     own = NOISE
     if own_warm is not None:
@@ -74,14 +79,20 @@ def variants(
     for scale in noise_scales:
         if scale != own_scale and not (own_warm is None and scale in scales):
             table[f"pure noise, scale {scale:g}"] = {"warm": None, "scale": scale, "over": NOISE}
+    for n in samples:
+        if n != own_samples:
+            table[f"{n} samples per decision"] = {"warm": own_warm, "scale": own_scale, "over": own, "samples": n}
     if own_warm is not None and own_warm in warm_steps:
         table[own]["over"] = NOISE  # the task's own warm start is one of those compared with pure noise
     return table
 
 
-def evaluate(ws: Any, warm: int | None, scale: float) -> dict[str, Any]:
+def evaluate(ws: Any, warm: int | None, scale: float, samples: int | None = None) -> dict[str, Any]:
     """One setting of the planner over the workspace's episodes: per-episode scores, lengths and time."""
-    task = ws.task_with({"guide.warm_start_step": warm, "guide.scale": scale})
+    settings: dict[str, Any] = {"guide.warm_start_step": warm, "guide.scale": scale}
+    if samples is not None:
+        settings["guide.n_samples"] = samples
+    task = ws.task_with(settings)
     family = get_family(task.family)
     ev = task.evaluate
     planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
@@ -109,6 +120,7 @@ def main() -> None:
         default=[],
         help="guide scales to compare replanning from pure noise (guided over the whole chain)",
     )
+    parser.add_argument("--samples", type=int, nargs="*", default=[], help="plans per decision to compare")
     parser.add_argument("--training-seeds", type=int, nargs="+", default=None, help="default: --training-seed")
     parser.add_argument("--out", type=Path, default=None, help="default: compare_warm_start.json in WORKSPACE")
     args = parser.parse_args()
@@ -121,7 +133,8 @@ def main() -> None:
         ws = load_trained(args)
         base = ws.task()
         guide = base.settings.guide
-        table = variants(args.warm_steps, args.scales, guide.scale, guide.warm_start_step, args.noise_scales)
+        table = variants(args.warm_steps, args.scales, guide.scale, guide.warm_start_step, args.noise_scales,
+                         args.samples, guide.n_samples)  # fmt: skip
         setup = {"task": ws.name, "phase": args.phase, "episode_seed": args.seed, "episodes": base.evaluate.episodes}
         if any(record.get(key, value) != value for key, value in setup.items()):
             parser.error(f"{out} holds another comparison ({ {k: record.get(k) for k in setup} }): give --out")
@@ -129,7 +142,7 @@ def main() -> None:
         runs = record["runs"].setdefault(str(seed), {})
         for label, setting in table.items():
             if label not in runs:
-                runs[label] = evaluate(ws, setting["warm"], setting["scale"]) | setting
+                runs[label] = evaluate(ws, setting["warm"], setting["scale"], setting.get("samples")) | setting
                 with atomic_path(out) as tmp:  # a kill mid-write leaves the last whole file
                     tmp.write_text(json.dumps(record, indent=1) + "\n")
             run = runs[label]
