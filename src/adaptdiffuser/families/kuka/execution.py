@@ -121,7 +121,7 @@ def held_block_condition(planner: Planner, blocks: Sequence[int], first: int, la
 
     def project(x: torch.Tensor) -> torch.Tensor:
         x = x.clone()
-        x[:, first:last, flag_index] = holding.expand(-1, max(0, min(last, x.shape[1]) - first), -1)
+        x[:, first:last, flag_index] = holding
         x[:, last:, flag_index] = off
         return x
 
