@@ -2,18 +2,28 @@
 
 from __future__ import annotations
 
+import copy
 import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from adaptdiffuser.families.locomotion.band import Band, BandNotReachedError, search_band
+from adaptdiffuser.families.locomotion.band import Band, BandNotReachedError, SearchState, search_band
 from adaptdiffuser.families.locomotion.behaviour import (
+    _Learner,
     _Recorder,
+    _SimEnv,
     collect_locomotion_dataset,
     load_behaviour_policy,
+    make_learner,
     record_medium_rollouts,
     train_behaviour,
 )
@@ -77,6 +87,34 @@ def test_a_curve_that_jumps_over_the_band_is_searched_back_into_it() -> None:
     assert choice.spent == sum(r["steps"] - p for r, p in zip(records, [0, *[20_480 * i for i in range(1, 5)],
                                                                           81_920, 81_920], strict=True))  # fmt: skip
     assert all("band_score" in r for r in records if r["action"] == "choose")
+
+
+class Interrupted(Exception):
+    """A search stopped from outside."""
+
+
+def test_a_search_interrupted_anywhere_continues_from_its_saved_state_as_if_never_stopped() -> None:
+    """The jumping curve's search (continues, then two rewinds) is stopped before each of its chunks in turn; the
+    state saved there, with the trainee as it was, gives the same evaluations and choice as the straight search."""
+    straight_records: list[dict] = []
+    straight = search_band(CurveTrainee(jumping_curve), BAND, 20_480, 2_048, 300_000, straight_records.append)
+    for stop_at in range(1, len(straight_records)):
+        trainee, records, seen = CurveTrainee(jumping_curve), [], []
+
+        def save_then_stop(
+            state: SearchState, trainee: CurveTrainee = trainee, seen: list = seen, stop_at: int = stop_at
+        ) -> None:
+            seen.append((copy.deepcopy(state), trainee.at))
+            if len(seen) > stop_at:
+                raise Interrupted
+
+        with pytest.raises(Interrupted):
+            search_band(trainee, BAND, 20_480, 2_048, 300_000, records.append, on_state=save_then_stop)
+        state, at = seen[-1]
+        again = CurveTrainee(jumping_curve)
+        again.at = at
+        choice = search_band(again, BAND, 20_480, 2_048, 300_000, records.append, state=state)
+        assert choice == straight and records == straight_records, f"stopped before chunk {stop_at + 1}"
 
 
 def test_a_curve_that_never_reaches_the_band_is_refused_naming_the_settings() -> None:
@@ -171,3 +209,61 @@ def test_the_collected_dataset_scores_what_the_band_search_recorded(tmp_path: Pa
     sim = LocomotionSimulator("Hopper-v5", episode_steps=60)
     again = record_medium_rollouts(load_behaviour_policy(tmp_path / "collect"), sim, settings)
     np.testing.assert_array_equal(again["action"].astype(np.float32), traj.action)
+
+
+@pytest.mark.parametrize("algorithm", ["ppo", "sac"])
+def test_a_learners_exact_state_goes_on_as_the_learner_itself(algorithm: str) -> None:
+    """Mid-episode, with its buffers and the global random streams: the restored learner takes the same training
+    path (weights and recorded replay) as the one it was saved from; SAC's replay buffer, allocated for a million
+    steps, is saved as its filled rows only."""
+    settings = BehaviourSettings(algorithm=algorithm, seed=3, learning_starts=50, **TINY)
+    eval_sim = LocomotionSimulator("Hopper-v5", episode_steps=70)
+    recorder = _Recorder()
+    env = _SimEnv(LocomotionSimulator("Hopper-v5", episode_steps=70), recorder)
+    learner = _Learner(make_learner(env, settings), env, recorder, eval_sim, settings, lambda: None)
+    learner.train(170)  # 170 (SAC) or 300 (PPO, whole rollouts of 150) steps: not at an episode's end
+    saved = learner.exact_state()
+    learner.train(170)
+    again = _Learner.from_exact_state(saved, eval_sim, settings, lambda: None)
+    again.train(170)
+    for a, b in zip(learner.learner.policy.parameters(), again.learner.policy.parameters(), strict=True):
+        assert np.array_equal(a.detach().numpy(), b.detach().numpy())
+    for key, column in recorder.columns().items():
+        np.testing.assert_array_equal(column, again.recorder.columns()[key], err_msg=key)
+    assert len(recorder) == learner.steps() == again.steps() and len(saved) < 5_000_000
+
+
+def test_a_killed_behaviour_search_resumes_where_it_stopped(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A real search in a process of its own, SIGKILLed once it has saved its state: run again, it resumes from that
+    state and ends with the evaluations of an uninterrupted search (here refused: the band is out of reach)."""
+    settings = BehaviourSettings(seed=0, medium_score=80.0, medium_band=1.0, **{**TINY, "max_train_steps": 1500})
+    resume = tmp_path / "resume" / "search.pkl"
+    script = textwrap.dedent(f"""
+        from pathlib import Path
+        from adaptdiffuser.families.locomotion.behaviour import train_behaviour
+        from adaptdiffuser.families.locomotion.params import BehaviourSettings
+        settings = BehaviourSettings.model_validate_json({settings.model_dump_json()!r})
+        train_behaviour("Hopper-v5", Path({str(tmp_path / "killed")!r}), settings, resume_path=Path({str(resume)!r}),
+                        checkpoint_every_s=0.0)
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script], start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)  # fmt: skip
+    while proc.poll() is None and not resume.exists():
+        time.sleep(0.01)
+    os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL, f"the search ended before it was killed: {proc.stderr.read().decode()}"
+    killed_after = len(json.loads((tmp_path / "killed" / "behaviour.json").read_text())["curve"])
+
+    with pytest.raises(BandNotReachedError):
+        train_behaviour("Hopper-v5", tmp_path / "straight", settings)
+    capsys.readouterr()
+    with pytest.raises(BandNotReachedError):
+        train_behaviour("Hopper-v5", tmp_path / "killed", settings, resume_path=resume, checkpoint_every_s=0.0)
+    assert "resuming the behaviour search after" in capsys.readouterr().out
+
+    def curve(name: str) -> list[dict]:
+        points = json.loads((tmp_path / name / "behaviour.json").read_text())["curve"]
+        return [{key: value for key, value in point.items() if key != "wall_s"} for point in points]
+
+    assert len(curve("straight")) == 10 and 1 <= killed_after < 10
+    assert curve("killed") == curve("straight")

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from adaptdiffuser.layout import collect_dir, dataset_path, value_dir
+from adaptdiffuser.layout import collect_dir, collect_resume_path, dataset_path, value_dir
 
 if TYPE_CHECKING:
     from adaptdiffuser.data.d4rl import ExternalData
@@ -314,3 +314,9 @@ class TaskFiles:
         """The collect stage's folder: its summary and the family's own outputs, such as behaviour policies."""
 
         return self.root / collect_dir(self.task)
+
+    @property
+    def collect_resume(self) -> Path:
+        """Where a family's data recipe may keep its state under way, to continue after an interruption."""
+
+        return self.root / collect_resume_path(self.task)

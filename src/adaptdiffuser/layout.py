@@ -49,6 +49,12 @@ def resume_path(task: str, phase: int, seed: int, control: bool = False) -> Path
     return Path("models") / ".resume" / f"{task}-{phase_name(phase, control)}-{seed_name(seed)}.pt"
 
 
+def collect_resume_path(task: str) -> Path:
+    """Where the collect stage of a task keeps the state of a long data recipe under way, such as a behaviour
+    policy's training (ignored by git and DVC; removed by the recipe once it has no more use)."""
+    return Path("models") / ".resume" / f"{task}-collect.pkl"
+
+
 def value_resume_path(task: str, seed: int) -> Path:
     """Where the training of the task's value function for a training seed keeps its resume state (removed with
     the phase-0 models' states)."""

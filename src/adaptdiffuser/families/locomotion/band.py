@@ -10,7 +10,9 @@ the band is a promise about the dataset, and the search tries many policies on t
 one it stops at scored high partly by luck (a Hopper policy at 32.5 on 50 episodes, 31.3 on 100 fresh ones,
 recorded a dataset of 29.2 +- 0.2). Otherwise the dataset's score decides the next move. The search refuses when
 the step budget runs out. The rule is written against :class:`Trainee`, so it runs the same on a real learner and on
-a score curve.
+a score cur The search's own state between
+evaluations is a :class:`SearchState`, handed out before each chunk of training so that a caller can save it
+beside the learner and continue an interrupted search where it stopped.
 """
 
 from __future__ import annotations
@@ -92,6 +94,18 @@ class BandChoice:
     rewinds: int
 
 
+@dataclass
+class SearchState:
+    """Where a search stands between two evaluations: steps spent, times gone back, the training interval, the
+    highest score seen and the snapshot to go back to."""
+
+    interval: int
+    below: Any
+    spent: int = 0
+    rewinds: int = 0
+    highest: float = -float("inf")
+
+
 def search_band(
     trainee: Trainee,
     band: Band,
@@ -100,40 +114,43 @@ def search_band(
     budget: int,
     on_eval: Callable[[dict[str, Any]], None] = lambda record: None,
     setting: str = "behaviour",
+    state: SearchState | None = None,
+    on_state: Callable[[SearchState], None] = lambda state: None,
 ) -> BandChoice:
     """Train ``trainee`` until a policy's dataset scores in ``band`` (see the module's docstring); every evaluation
     is passed to ``on_eval`` as ``{steps, spent, quick_score, band_score?, band_stderr?, confirm_score?,
     confirm_stderr?, action}`` (``confirm_*``: the dataset's). Raises :class:`BandNotReachedError` naming the
-    settings to change when ``budget`` steps are spent first."""
-    spent, rewinds, interval = 0, 0, eval_every
-    below = trainee.snapshot()
-    highest = -float("inf")
-    while spent < budget:
-        spent += trainee.train(min(interval, budget - spent))
+    settings to change when ``budget`` steps are spent first. ``on_state`` sees the search's state before each chunk
+    of training; passing a saved one as ``state`` (with the trainee as it was then) continues that search."""
+    if state is None:
+        state = SearchState(interval=eval_every, below=trainee.snapshot())
+    while state.spent < budget:
+        on_state(state)
+        state.spent += trainee.train(min(state.interval, budget - state.spent))
         quick = trainee.quick_score()
-        record: dict[str, Any] = {"steps": trainee.steps(), "spent": spent, "quick_score": quick}
+        record: dict[str, Any] = {"steps": trainee.steps(), "spent": state.spent, "quick_score": quick}
         score = quick
         if band.near(quick):
             score, record["band_stderr"] = trainee.band_score()
             record["band_score"] = score
-        highest = max(highest, score)
+        state.highest = max(state.highest, score)
         if "band_score" in record and band.holds(score, record["band_stderr"]):
             data_score, data_stderr = trainee.confirm_score()
             record |= {"confirm_score": data_score, "confirm_stderr": data_stderr}
             if band.holds(data_score, data_stderr):
                 on_eval(record | {"action": "choose"})
-                return BandChoice(trainee.steps(), data_score, data_stderr, spent, rewinds)
+                return BandChoice(trainee.steps(), data_score, data_stderr, state.spent, state.rewinds)
             score = data_score  # the dataset's score decides: below or inside goes on, above goes back
         if score < band.low or ("band_score" in record and score in band):  # below, or inside but not surely
             on_eval(record | {"action": "continue"})
-            below = trainee.snapshot()
+            state.below = trainee.snapshot()
             continue
-        rewinds += 1
-        interval = max(min_eval_every, interval // 4)
-        on_eval(record | {"action": "rewind", "next_interval": interval})
-        trainee.restore(below, rewinds)
+        state.rewinds += 1
+        state.interval = max(min_eval_every, state.interval // 4)
+        on_eval(record | {"action": "rewind", "next_interval": state.interval})
+        trainee.restore(state.below, state.rewinds)
     raise BandNotReachedError(
         f"{setting}: no behaviour policy scored inside {band.low:g}..{band.high:g} within {budget} training steps "
-        f"(highest {highest:.1f}, went back {rewinds} times); raise {setting}.max_train_steps, widen "
+        f"(highest {state.highest:.1f}, went back {state.rewinds} times); raise {setting}.max_train_steps, widen "
         f"{setting}.medium_band or lower {setting}.min_eval_every"
     )

@@ -15,6 +15,8 @@ from __future__ import annotations
 import io
 import json
 import math
+import pickle
+import random
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -28,7 +30,7 @@ from tqdm.auto import tqdm
 
 from adaptdiffuser.data.schema import Trajectories, make_metadata
 from adaptdiffuser.evaluation import standard_error
-from adaptdiffuser.families.locomotion.band import Band, search_band
+from adaptdiffuser.families.locomotion.band import Band, SearchState, search_band
 from adaptdiffuser.families.locomotion.params import BehaviourSettings
 from adaptdiffuser.families.locomotion.reference import normalized_score
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator, env_id_of, parse_task_name
@@ -39,6 +41,10 @@ Policy = Callable[[np.ndarray], np.ndarray]
 
 #: the evaluation curve and the policies' summary, beside the ``.zip`` files
 SUMMARY_FILE = "behaviour.json"
+
+#: how often (wall-clock seconds, at an evaluation) the band search writes its resume state: any state resumes
+#: exactly, so this trades only disk writes (a replay of a million steps is some hundred megabytes) against work lost
+CHECKPOINT_EVERY_S = 600.0
 
 
 # -- evaluation -----------------------------------------------------------------------------------------------
@@ -118,6 +124,14 @@ class _Recorder:
 
     def __len__(self) -> int:
         return len(self.episode)
+
+    def __getstate__(self) -> dict[str, np.ndarray]:
+        """Pickled as one array per column: a million rows of small arrays would pickle slowly and large."""
+        return {name: np.asarray(rows) for name, rows in vars(self).items()}
+
+    def __setstate__(self, saved: dict[str, np.ndarray]) -> None:
+        for name, column in saved.items():
+            setattr(self, name, list(column))
 
     def truncate(self, rows: int) -> None:
         """Keep the first ``rows`` rows (training went back to that point); an episode cut there ends with a
@@ -289,11 +303,16 @@ def train_behaviour(
     expert: bool = False,
     progress: bool = False,
     setting: str = "behaviour",
+    resume_path: Path | None = None,
+    checkpoint_every_s: float = CHECKPOINT_EVERY_S,
 ) -> TrainingResult:
     """Train until the medium score's band (see :mod:`~adaptdiffuser.families.locomotion.band`; without a band,
     the first evaluation at the medium score or the step budget's end), save ``medium.zip``; with ``expert``, go on
     to the expert score (or its budget) and save ``expert.zip``. ``behaviour.json`` in ``out_dir`` holds the
-    evaluation curve. ``setting`` is the params key that errors name (``task.<name>.behaviour``)."""
+    evaluation curve. ``setting`` is the params key that errors name (``task.<name>.behaviour``). With
+    ``resume_path``, the band search writes its whole state there at an evaluation every ``checkpoint_every_s``
+    seconds, and a search killed midway continues from it exactly (the same policy and data as an uninterrupted
+    search); the file is removed once the medium policy is chosen."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     out_dir = Path(out_dir)
@@ -340,15 +359,38 @@ def train_behaviour(
     def medium_in_band(learner: Any, start: float) -> tuple[_Learner, dict[str, Any], Any]:
         band = Band(settings.medium_score, settings.medium_band)
         trainee = _Learner(learner, train_env, recorder, eval_sim, settings, _Bar, progress)
+        key = {"env_id": env_id, "settings": settings.model_dump()}
+        saved = _load_search(resume_path, key)
+        state = None
+        if saved is not None:
+            state, trainee = saved["search"], _Learner.from_exact_state(saved["trainee"], eval_sim, settings, _Bar,
+                                                                          progress)  # fmt: skip
+            curve.extend(saved["curve"])
+            bar.update(trainee.steps())
+        last_write = time.monotonic()
 
         def on_eval(record: dict[str, Any]) -> None:
             score = record.get("confirm_score", record.get("band_score", record["quick_score"]))
             curve.append({**record, "normalized_score": score, "wall_s": time.perf_counter() - start})
             bar.set_postfix(score=f"{score:.1f}")
             write_json(out_dir / SUMMARY_FILE, summary)
+            if not progress:  # a line per evaluation, so that a run without bars still shows how far it got
+                tqdm.write(f"{env_id} {settings.algorithm}: {record['steps']} steps, score {score:.1f}, "
+                           f"{record['action']}")  # fmt: skip
+
+        def on_state(search: SearchState) -> None:
+            nonlocal last_write
+            if resume_path is None or not curve or time.monotonic() - last_write < checkpoint_every_s:
+                return
+            payload = {**key, "search": search, "curve": list(curve), "trainee": trainee.exact_state()}
+            with atomic_path(resume_path) as tmp:
+                tmp.write_bytes(pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL))
+            last_write = time.monotonic()
 
         choice = search_band(trainee, band, settings.eval_every, settings.min_eval_every, settings.max_train_steps,
-                             on_eval, setting=setting)  # fmt: skip
+                             on_eval, setting=setting, state=state, on_state=on_state)  # fmt: skip
+        if resume_path is not None:
+            resume_path.unlink(missing_ok=True)
         info = {"file": "medium.zip", "target": settings.medium_score, "band": [band.low, band.high],
                 "reached": True, "steps": choice.steps, "normalized_score": choice.score,
                 "score_stderr": choice.stderr, "score_of": "dataset",
@@ -368,6 +410,7 @@ def train_behaviour(
         else:
             trainee, medium, medium_policy = medium_in_band(learner, start)
             learner, rollouts = trainee.learner, trainee.recorded
+            train_env, recorder = trainee.env, trainee.recorder  # a resumed search brought its own
         summary["medium"] = medium
         replay = recorder.columns(len(recorder))
         result = TrainingResult(learner, curve, replay, medium, rollouts, medium_policy=medium_policy)
@@ -434,6 +477,80 @@ class _Learner:
         self.learner.set_random_seed(derive_seed(self.settings.seed, attempt))
         self.recorder.truncate(rows)
 
+    def exact_state(self) -> bytes:
+        """Everything the training path depends on, pickled: the learner with its env (mid-episode) and buffers,
+        the replay recorder and the global random streams SB3 draws from; :meth:`from_exact_state` goes on from it
+        as this learner would."""
+        rng = {"numpy": np.random.get_state(), "torch": _torch_rng_state(), "python": random.getstate()}
+        with _compact_replay_buffer(self.learner):
+            return pickle.dumps({"learner": self.learner, "env": self.env, "recorder": self.recorder, "rng": rng},
+                                protocol=pickle.HIGHEST_PROTOCOL)  # fmt: skip
+
+    @classmethod
+    def from_exact_state(cls, saved: bytes, eval_sim: LocomotionSimulator, settings: BehaviourSettings,
+                         callback: type, progress: bool = False) -> _Learner:  # fmt: skip
+        import torch
+
+        state = pickle.loads(saved)
+        _expand_replay_buffer(state["learner"])
+        np.random.set_state(state["rng"]["numpy"])
+        torch.set_rng_state(state["rng"]["torch"])
+        random.setstate(state["rng"]["python"])
+        return cls(state["learner"], state["env"], state["recorder"], eval_sim, settings, callback, progress)
+
+
+def _torch_rng_state() -> Any:
+    import torch
+
+    return torch.get_rng_state()
+
+
+#: an off-policy replay buffer's arrays (SB3 ``ReplayBuffer``), allocated whole and filled from the start
+_REPLAY_ARRAYS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+
+
+@contextmanager
+def _compact_replay_buffer(learner: Any) -> Iterator[None]:
+    """While pickling: an off-policy learner's replay buffer cut to its filled rows (the rest are zeros)."""
+    buffer = getattr(learner, "replay_buffer", None)
+    if buffer is None or buffer.full:
+        yield
+        return
+    whole = {name: getattr(buffer, name) for name in _REPLAY_ARRAYS if getattr(buffer, name, None) is not None}
+    try:
+        for name, array in whole.items():
+            setattr(buffer, name, array[: buffer.pos])
+        yield
+    finally:
+        for name, array in whole.items():
+            setattr(buffer, name, array)
+
+
+def _expand_replay_buffer(learner: Any) -> None:
+    """Undo :func:`_compact_replay_buffer` on an unpickled learner: zeros after the filled rows, as allocated."""
+    buffer = getattr(learner, "replay_buffer", None)
+    if buffer is None or buffer.full:
+        return
+    for name in _REPLAY_ARRAYS:
+        array = getattr(buffer, name, None)
+        if array is not None and len(array) < buffer.buffer_size:
+            whole = np.zeros((buffer.buffer_size, *array.shape[1:]), dtype=array.dtype)
+            whole[: len(array)] = array
+            setattr(buffer, name, whole)
+
+
+def _load_search(path: Path | None, key: dict[str, Any]) -> dict[str, Any] | None:
+    """The band search saved at ``path`` when it was written for the same env and settings (saying so), else
+    ``None`` (saying why, when a search of other settings is ignored)."""
+    if path is None or not path.exists():
+        return None
+    saved = pickle.loads(path.read_bytes())
+    if {name: saved.get(name) for name in key} != key:
+        tqdm.write(f"ignoring behaviour search state {path}: it belongs to other settings")
+        return None
+    tqdm.write(f"resuming the behaviour search after {len(saved['curve'])} evaluations ({path})")
+    return saved
+
 
 # -- datasets -------------------------------------------------------------------------------------------------
 
@@ -468,13 +585,20 @@ def to_trajectories(parts: list[dict[str, np.ndarray]], task_name: str, sim: Loc
 
 
 def collect_locomotion_dataset(
-    task_name: str, out_dir: Path, settings: BehaviourSettings, progress: bool = False
+    task_name: str,
+    out_dir: Path,
+    settings: BehaviourSettings,
+    progress: bool = False,
+    resume_path: Path | None = None,
+    checkpoint_every_s: float = CHECKPOINT_EVERY_S,
 ) -> Trajectories:
-    """Train the behaviour policies of ``task_name`` (saved in ``out_dir``) and record its D4RL-style dataset."""
+    """Train the behaviour policies of ``task_name`` (saved in ``out_dir``) and record its D4RL-style dataset;
+    ``resume_path`` and ``checkpoint_every_s`` as :func:`train_behaviour`'s."""
     env_id, kind = parse_task_name(task_name)
     sim = LocomotionSimulator(env_id, episode_steps=settings.episode_steps)
     result = train_behaviour(env_id, out_dir, settings, expert=kind == "medium-expert", progress=progress,
-                             setting=f"task.{task_name}.behaviour")  # fmt: skip
+                             setting=f"task.{task_name}.behaviour", resume_path=resume_path,
+                             checkpoint_every_s=checkpoint_every_s)  # fmt: skip
     generator: dict[str, Any] = {
         "recipe": "d4rl-regenerated",
         "env_id": env_id,

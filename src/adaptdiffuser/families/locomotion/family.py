@@ -41,10 +41,12 @@ class LocomotionFamily(Family):
         return LocomotionSimulator(env_id, episode_steps=steps)
 
     def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
-        """Train the behaviour policies (saved under ``models/<task>/collect``) and record the dataset."""
+        """Train the behaviour policies (saved under ``models/<task>/collect``; a medium search killed midway goes on
+        from ``files.collect_resume``) and record the dataset."""
         from adaptdiffuser.families.locomotion.behaviour import collect_locomotion_dataset
 
-        return collect_locomotion_dataset(task.name, files.collect, task.settings.behaviour, progress)
+        return collect_locomotion_dataset(task.name, files.collect, task.settings.behaviour, progress,
+                                          resume_path=files.collect_resume)  # fmt: skip
 
     def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
         """D4RL's random and expert returns (the score's 0 and 100), and beside them, on the evaluation seeds and

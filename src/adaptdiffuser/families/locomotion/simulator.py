@@ -43,6 +43,7 @@ class LocomotionSimulator(Simulator):
             raise ValueError(f"unknown locomotion env {env_id!r}; known: {sorted(ENV_IDS.values())}")
         if episode_steps <= 0:
             raise ValueError(f"episode_steps must be positive, got {episode_steps}")
+        self._init_args = (env_id, episode_steps, exact_state, dict(env_kwargs))
         self.env = gym.make(env_id, **env_kwargs).unwrapped
         if exact_state:
             self.env.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
@@ -60,6 +61,16 @@ class LocomotionSimulator(Simulator):
         self.forward_reward_weight = float(self.env._forward_reward_weight)
         self.ctrl_cost_weight = float(self.env._ctrl_cost_weight)
         self.healthy_reward = float(getattr(self.env, "_healthy_reward", 0.0))
+
+    def __getstate__(self) -> dict[str, Any]:
+        """Pickled as its constructor's arguments and the current full state: gymnasium pickles a MuJoCo env by
+        building it anew, which would lose the state of an episode under way."""
+        return {"init_args": self._init_args, "state": self.get_state()}
+
+    def __setstate__(self, saved: dict[str, Any]) -> None:
+        env_id, episode_steps, exact_state, env_kwargs = saved["init_args"]
+        self.__init__(env_id, episode_steps, exact_state, **env_kwargs)
+        self.set_state(saved["state"])
 
     # -- episode --------------------------------------------------------------------------------------------------
 
