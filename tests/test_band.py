@@ -19,6 +19,7 @@ import pytest
 from adaptdiffuser.families.locomotion.band import Band, BandNotReachedError, SearchState, search_band
 from adaptdiffuser.families.locomotion.behaviour import (
     _Learner,
+    _load_search,
     _Recorder,
     _SimEnv,
     collect_locomotion_dataset,
@@ -253,6 +254,9 @@ def test_a_killed_behaviour_search_resumes_where_it_stopped(tmp_path: Path, caps
     os.killpg(proc.pid, signal.SIGKILL)
     assert proc.wait() == -signal.SIGKILL, f"the search ended before it was killed: {proc.stderr.read().decode()}"
     killed_after = len(json.loads((tmp_path / "killed" / "behaviour.json").read_text())["curve"])
+    key = {"env_id": "Hopper-v5", "settings": settings.model_dump(), "tag": None}
+    assert _load_search(resume, {**key, "tag": "other code"}) is None  # taken up only by the same code
+    assert _load_search(resume, {**key, "settings": {**key["settings"], "seed": 1}}) is None
 
     with pytest.raises(BandNotReachedError):
         train_behaviour("Hopper-v5", tmp_path / "straight", settings)

@@ -295,6 +295,9 @@ class TaskFiles:
     model: Path | None = None
     #: the training seed the stage works for
     seed: int = 0
+    #: the digest of the task's code (its ``code`` stage's fingerprint), which a recipe tags its resume state with so
+    #: that other code does not take it up; None outside the pipeline
+    code: str | None = None
 
     @property
     def dataset(self) -> Path:

@@ -13,6 +13,7 @@ from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import write_json
 from adaptdiffuser.layout import collect_dir, dataset_path
 from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.stages.training_data import code_digest
 from adaptdiffuser.tooling.mlflow_logging import log_params, stage_run
 
 
@@ -23,7 +24,7 @@ def run_collect(params: Params, task_name: str, root: Path, progress: bool = Tru
     family = get_family(task.family)
     logged = {"task": task.section("settings"), "family": family.describe(task)}
     with stage_run(task.name, "collect", 0, logged, root):
-        traj = family.collect(task, TaskFiles(root, task.name), progress)
+        traj = family.collect(task, TaskFiles(root, task.name, code=code_digest(root, task.name)), progress)
         out = root / dataset_path(task.name)
         write_trajectories(out, traj)
         stats = {"steps": len(traj), "episodes": len(traj.episodes()), "reward_mean": float(traj.reward.mean())}

@@ -305,6 +305,7 @@ def train_behaviour(
     setting: str = "behaviour",
     resume_path: Path | None = None,
     checkpoint_every_s: float = CHECKPOINT_EVERY_S,
+    resume_tag: str | None = None,
 ) -> TrainingResult:
     """Train until the medium score's band (see :mod:`~adaptdiffuser.families.locomotion.band`; without a band,
     the first evaluation at the medium score or the step budget's end), save ``medium.zip``; with ``expert``, go on
@@ -312,7 +313,8 @@ def train_behaviour(
     evaluation curve. ``setting`` is the params key that errors name (``task.<name>.behaviour``). With
     ``resume_path``, the band search writes its whole state there at an evaluation every ``checkpoint_every_s``
     seconds, and a search killed midway continues from it exactly (the same policy and data as an uninterrupted
-    search); the file is removed once the medium policy is chosen."""
+    search); the file is removed once the medium policy is chosen. A state is taken up only by the same env,
+    settings and ``resume_tag`` (the pipeline's: the task's code digest)."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     out_dir = Path(out_dir)
@@ -359,7 +361,7 @@ def train_behaviour(
     def medium_in_band(learner: Any, start: float) -> tuple[_Learner, dict[str, Any], Any]:
         band = Band(settings.medium_score, settings.medium_band)
         trainee = _Learner(learner, train_env, recorder, eval_sim, settings, _Bar, progress)
-        key = {"env_id": env_id, "settings": settings.model_dump()}
+        key = {"env_id": env_id, "settings": settings.model_dump(), "tag": resume_tag}
         saved = _load_search(resume_path, key)
         state = None
         if saved is not None:
@@ -540,13 +542,13 @@ def _expand_replay_buffer(learner: Any) -> None:
 
 
 def _load_search(path: Path | None, key: dict[str, Any]) -> dict[str, Any] | None:
-    """The band search saved at ``path`` when it was written for the same env and settings (saying so), else
-    ``None`` (saying why, when a search of other settings is ignored)."""
+    """The band search saved at ``path`` when it was written under the same ``key`` (env, settings, code; saying
+    so), else ``None`` (saying why, when a search of other settings or code is ignored)."""
     if path is None or not path.exists():
         return None
     saved = pickle.loads(path.read_bytes())
     if {name: saved.get(name) for name in key} != key:
-        tqdm.write(f"ignoring behaviour search state {path}: it belongs to other settings")
+        tqdm.write(f"ignoring behaviour search state {path}: it belongs to other settings or code")
         return None
     tqdm.write(f"resuming the behaviour search after {len(saved['curve'])} evaluations ({path})")
     return saved
@@ -591,14 +593,15 @@ def collect_locomotion_dataset(
     progress: bool = False,
     resume_path: Path | None = None,
     checkpoint_every_s: float = CHECKPOINT_EVERY_S,
+    resume_tag: str | None = None,
 ) -> Trajectories:
     """Train the behaviour policies of ``task_name`` (saved in ``out_dir``) and record its D4RL-style dataset;
-    ``resume_path`` and ``checkpoint_every_s`` as :func:`train_behaviour`'s."""
+    ``resume_path``, ``checkpoint_every_s`` and ``resume_tag`` as :func:`train_behaviour`'s."""
     env_id, kind = parse_task_name(task_name)
     sim = LocomotionSimulator(env_id, episode_steps=settings.episode_steps)
     result = train_behaviour(env_id, out_dir, settings, expert=kind == "medium-expert", progress=progress,
                              setting=f"task.{task_name}.behaviour", resume_path=resume_path,
-                             checkpoint_every_s=checkpoint_every_s)  # fmt: skip
+                             checkpoint_every_s=checkpoint_every_s, resume_tag=resume_tag)  # fmt: skip
     generator: dict[str, Any] = {
         "recipe": "d4rl-regenerated",
         "env_id": env_id,

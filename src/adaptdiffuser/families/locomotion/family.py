@@ -46,7 +46,7 @@ class LocomotionFamily(Family):
         from adaptdiffuser.families.locomotion.behaviour import collect_locomotion_dataset
 
         return collect_locomotion_dataset(task.name, files.collect, task.settings.behaviour, progress,
-                                          resume_path=files.collect_resume)  # fmt: skip
+                                          resume_path=files.collect_resume, resume_tag=files.code)  # fmt: skip
 
     def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
         """D4RL's random and expert returns (the score's 0 and 100), and beside them, on the evaluation seeds and
