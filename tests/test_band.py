@@ -251,8 +251,9 @@ def test_a_killed_behaviour_search_resumes_where_it_stopped(tmp_path: Path, caps
                             stderr=subprocess.PIPE)  # fmt: skip
     while proc.poll() is None and not resume.exists():
         time.sleep(0.01)
+    assert proc.poll() is None, f"the search ended before it was killed: {proc.stderr.read().decode()}"
     os.killpg(proc.pid, signal.SIGKILL)
-    assert proc.wait() == -signal.SIGKILL, f"the search ended before it was killed: {proc.stderr.read().decode()}"
+    assert proc.wait() == -signal.SIGKILL
     killed_after = len(json.loads((tmp_path / "killed" / "behaviour.json").read_text())["curve"])
     key = {"env_id": "Hopper-v5", "settings": settings.model_dump(), "tag": None}
     assert _load_search(resume, {**key, "tag": "other code"}) is None  # taken up only by the same code
