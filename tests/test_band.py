@@ -22,6 +22,7 @@ from adaptdiffuser.families.locomotion.behaviour import (
     _load_search,
     _Recorder,
     _SimEnv,
+    _versions,
     collect_locomotion_dataset,
     load_behaviour_policy,
     make_learner,
@@ -255,9 +256,11 @@ def test_a_killed_behaviour_search_resumes_where_it_stopped(tmp_path: Path, caps
     os.killpg(proc.pid, signal.SIGKILL)
     assert proc.wait() == -signal.SIGKILL
     killed_after = len(json.loads((tmp_path / "killed" / "behaviour.json").read_text())["curve"])
-    key = {"env_id": "Hopper-v5", "settings": settings.model_dump(), "tag": None}
+    key = {"env_id": "Hopper-v5", "settings": settings.model_dump(), "tag": None, "versions": _versions()}
+    assert _load_search(resume, key) is not None
     assert _load_search(resume, {**key, "tag": "other code"}) is None  # taken up only by the same code
     assert _load_search(resume, {**key, "settings": {**key["settings"], "seed": 1}}) is None
+    assert _load_search(resume, {**key, "versions": {**key["versions"], "torch": "0.0"}}) is None
 
     with pytest.raises(BandNotReachedError):
         train_behaviour("Hopper-v5", tmp_path / "straight", settings)
@@ -265,6 +268,7 @@ def test_a_killed_behaviour_search_resumes_where_it_stopped(tmp_path: Path, caps
     with pytest.raises(BandNotReachedError):
         train_behaviour("Hopper-v5", tmp_path / "killed", settings, resume_path=resume, checkpoint_every_s=0.0)
     assert "resuming the behaviour search after" in capsys.readouterr().out
+    assert not resume.exists()  # refused: the state is of no more use
 
     def curve(name: str) -> list[dict]:
         points = json.loads((tmp_path / name / "behaviour.json").read_text())["curve"]
@@ -272,3 +276,15 @@ def test_a_killed_behaviour_search_resumes_where_it_stopped(tmp_path: Path, caps
 
     assert len(curve("straight")) == 10 and 1 <= killed_after < 10
     assert curve("killed") == curve("straight")
+
+
+def test_an_unreadable_search_state_is_ignored_and_the_search_starts_over(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    """A state cut short (a disk that filled up) or written by other code: the search starts over, saying why."""
+    settings = BehaviourSettings(seed=0, medium_score=0.0, medium_band=100.0, **TINY)
+    resume = tmp_path / "search.pkl"
+    resume.write_bytes(b"\x80\x05 not a whole pickle")
+    result = train_behaviour("Hopper-v5", tmp_path / "out", settings, resume_path=resume, checkpoint_every_s=0.0)
+    assert "ignoring behaviour search state" in capsys.readouterr().out
+    assert result.medium["steps"] == 150 and not resume.exists()

@@ -297,3 +297,20 @@ def test_the_hold_condition_follows_the_stretch_and_each_episodes_block(planner:
 def test_a_hold_span_must_be_ordered(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="hold must be"):
         params_from_dict(kuka_raw({"pick_place.hold": [0.75, 0.25]}, tmp_path))
+
+
+def test_a_hold_span_that_holds_no_step_of_the_plan_is_refused(tmp_path: Path) -> None:
+    """The span is cut at whole steps of the horizon: one narrower than a step would hold nothing and silently turn
+    every flag off from its start."""
+    params_from_dict(kuka_raw({"diffusion.horizon": 32, "pick_place.hold": [0.5, 0.55]}, tmp_path))  # 16 to 17
+    with pytest.raises(ConfigError, match=r"pick_place.hold: \[0.5, 0.52\] of a 32-step plan holds no step"):
+        params_from_dict(kuka_raw({"diffusion.horizon": 32, "pick_place.hold": [0.5, 0.52]}, tmp_path))
+
+
+def test_a_flag_the_data_never_turned_on_is_held_at_the_datas_top_not_beyond() -> None:
+    """A block the training data never picked (its flag always 0, a zero span): holding it asks for the data's
+    highest value, not for 1.0 over a zero span (about 2e6 in the model's units)."""
+    never = tiny_planner(flag_high=0.0)
+    y = held_block_condition(never, [0], first=2, last=6)(torch.zeros(1, HORIZON, OBS_DIM))
+    assert float(y.abs().max()) <= 1.0
+    np.testing.assert_allclose(y[0, 2:6, FLAG_COLUMNS[0]].numpy(), 1.0)

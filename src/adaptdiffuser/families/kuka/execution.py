@@ -109,13 +109,16 @@ def held_block_condition(planner: Planner, blocks: Sequence[int], first: int, la
     """Plan ``i`` picks block ``blocks[i]`` over steps ``first`` to ``last - 1`` and lets go at ``last``: that
     block's suction flag on and the other blocks' off over those steps, every flag off from ``last`` on (inpainted
     at every denoising step, as the start state is). Step 0, the real start, is never changed. Works on
-    ``planner``'s normalized trajectories."""
+    ``planner``'s normalized trajectories; a value outside the training data's range is clipped to it."""
     first, last = max(1, first), max(1, last)
     act, normalizer = planner.act_dim, planner.normalizer
     flags = [act + c for c in FLAG_COLUMNS]
     rows = np.zeros((len(blocks) + 1, act + OBS_DIM))  # one row per plan, then all flags off
     rows[np.arange(len(blocks)), [flags[b] for b in blocks]] = 1.0
-    values = torch.as_tensor(normalizer.normalize(rows)[:, flags], dtype=planner.dtype, device=planner.device)
+    # clipped to the data's range: a flag the data never turned on (a tower's base block, never picked) would
+    # normalize to about 1e6 over its zero span and wreck the whole plan; clipped, the model holds what it can
+    normalized = np.clip(normalizer.normalize(rows)[:, flags], -1.0, 1.0)
+    values = torch.as_tensor(normalized, dtype=planner.dtype, device=planner.device)
     holding, off = values[:-1, None, :], values[-1]
     flag_index = torch.tensor(flags, device=planner.device)
 

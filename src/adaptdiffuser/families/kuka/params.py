@@ -184,14 +184,22 @@ class KukaTaskParams(BaseModel):
             raise ConfigError(f"task.{name}: KUKA tasks are named {list(TASK_NAMES)}")
 
     def check(self, task: TaskParams, params: Params) -> None:
-        """Plans that condition on the start only, at least two steps long."""
+        """Plans at least two steps long, a hold span that holds some step of them, replans within a plan."""
         if task.diffusion.horizon < 2:
             raise ConfigError(f"task.{task.name}.diffusion.horizon: KUKA plans need at least 2 steps")
+        hold, horizon = self.pick_place.hold, task.diffusion.horizon
+        if hold is not None:
+            first, last = (max(1, int(f * horizon)) for f in hold)  # as the controller cuts the span
+            if first >= last:
+                raise ConfigError(
+                    f"task.{task.name}.pick_place.hold: {hold} of a {horizon}-step plan holds no step "
+                    f"(from step {first} to before step {last}); widen the span"
+                )
         every = self.planning.replan_every
-        if every is not None and every > task.diffusion.horizon - 1:
+        if every is not None and every > horizon - 1:
             raise ConfigError(
                 f"task.{task.name}.planning.replan_every: {every} steps is more than a plan holds "
-                f"(horizon - 1 = {task.diffusion.horizon - 1})"
+                f"(horizon - 1 = {horizon - 1})"
             )
 
 

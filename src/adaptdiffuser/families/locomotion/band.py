@@ -10,9 +10,8 @@ the band is a promise about the dataset, and the search tries many policies on t
 one it stops at scored high partly by luck (a Hopper policy at 32.5 on 50 episodes, 31.3 on 100 fresh ones,
 recorded a dataset of 29.2 +- 0.2). Otherwise the dataset's score decides the next move. The search refuses when
 the step budget runs out. The rule is written against :class:`Trainee`, so it runs the same on a real learner and on
-a score cur The search's own state between
-evaluations is a :class:`SearchState`, handed out before each chunk of training so that a caller can save it
-beside the learner and continue an interrupted search where it stopped.
+a score curve. The search's own state between evaluations is a :class:`SearchState`, handed out before each chunk of
+training so that a caller can save it beside the learner and continue an interrupted search where it stopped.
 """
 
 from __future__ import annotations

@@ -30,7 +30,7 @@ from tqdm.auto import tqdm
 
 from adaptdiffuser.data.schema import Trajectories, make_metadata
 from adaptdiffuser.evaluation import standard_error
-from adaptdiffuser.families.locomotion.band import Band, SearchState, search_band
+from adaptdiffuser.families.locomotion.band import Band, BandNotReachedError, SearchState, search_band
 from adaptdiffuser.families.locomotion.params import BehaviourSettings
 from adaptdiffuser.families.locomotion.reference import normalized_score
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator, env_id_of, parse_task_name
@@ -313,8 +313,9 @@ def train_behaviour(
     evaluation curve. ``setting`` is the params key that errors name (``task.<name>.behaviour``). With
     ``resume_path``, the band search writes its whole state there at an evaluation every ``checkpoint_every_s``
     seconds, and a search killed midway continues from it exactly (the same policy and data as an uninterrupted
-    search); the file is removed once the medium policy is chosen. A state is taken up only by the same env,
-    settings and ``resume_tag`` (the pipeline's: the task's code digest)."""
+    search); the file is removed when the search is refused or training ends (a kill after the choice, in the expert
+    phase say, resumes near the choice). A state is taken up only under the same env, settings, ``resume_tag`` (the
+    pipeline's: the task's code digest) and library versions."""
     from stable_baselines3.common.callbacks import BaseCallback
 
     out_dir = Path(out_dir)
@@ -358,16 +359,19 @@ def train_behaviour(
                 "wall_s": time.perf_counter() - start}  # fmt: skip
         return info, save(learner, name)
 
-    def medium_in_band(learner: Any, start: float) -> tuple[_Learner, dict[str, Any], Any]:
+    def medium_in_band(learner: Any) -> tuple[_Learner, dict[str, Any], Any]:
+        nonlocal start
         band = Band(settings.medium_score, settings.medium_band)
         trainee = _Learner(learner, train_env, recorder, eval_sim, settings, _Bar, progress)
-        key = {"env_id": env_id, "settings": settings.model_dump(), "tag": resume_tag}
+        key = {"env_id": env_id, "settings": settings.model_dump(), "tag": resume_tag, "versions": _versions()}
         saved = _load_search(resume_path, key)
         state = None
         if saved is not None:
-            state, trainee = saved["search"], _Learner.from_exact_state(saved["trainee"], eval_sim, settings, _Bar,
-                                                                          progress)  # fmt: skip
-            curve.extend(saved["curve"])
+            header, trainee_bytes = saved
+            state = header["search"]
+            trainee = _Learner.from_exact_state(trainee_bytes, eval_sim, settings, _Bar, progress)
+            curve.extend(header["curve"])
+            start -= header["wall_s"]  # the times go on from the interrupted search's
             bar.update(trainee.steps())
         last_write = time.monotonic()
 
@@ -384,15 +388,18 @@ def train_behaviour(
             nonlocal last_write
             if resume_path is None or not curve or time.monotonic() - last_write < checkpoint_every_s:
                 return
-            payload = {**key, "search": search, "curve": list(curve), "trainee": trainee.exact_state()}
-            with atomic_path(resume_path) as tmp:
-                tmp.write_bytes(pickle.dumps(payload, protocol=pickle.HIGHEST_PROTOCOL))
+            header = {**key, "search": search, "curve": list(curve), "wall_s": time.perf_counter() - start}
+            _save_search(resume_path, header, trainee.exact_state())
             last_write = time.monotonic()
 
-        choice = search_band(trainee, band, settings.eval_every, settings.min_eval_every, settings.max_train_steps,
-                             on_eval, setting=setting, state=state, on_state=on_state)  # fmt: skip
-        if resume_path is not None:
-            resume_path.unlink(missing_ok=True)
+        try:
+            choice = search_band(trainee, band, settings.eval_every, settings.min_eval_every,
+                                 settings.max_train_steps, on_eval, setting=setting, state=state,
+                                 on_state=on_state)  # fmt: skip
+        except BandNotReachedError:
+            if resume_path is not None:  # refused: the same settings would be refused again
+                resume_path.unlink(missing_ok=True)
+            raise
         info = {"file": "medium.zip", "target": settings.medium_score, "band": [band.low, band.high],
                 "reached": True, "steps": choice.steps, "normalized_score": choice.score,
                 "score_stderr": choice.stderr, "score_of": "dataset",
@@ -410,7 +417,7 @@ def train_behaviour(
         if settings.medium_band is None:
             medium, medium_policy = phase(learner, settings.medium_score, settings.max_train_steps, "medium", start)
         else:
-            trainee, medium, medium_policy = medium_in_band(learner, start)
+            trainee, medium, medium_policy = medium_in_band(learner)
             learner, rollouts = trainee.learner, trainee.recorded
             train_env, recorder = trainee.env, trainee.recorder  # a resumed search brought its own
         summary["medium"] = medium
@@ -423,6 +430,8 @@ def train_behaviour(
             )
             summary["expert"] = result.expert
         summary["train_steps_per_s"] = learner.num_timesteps / max(time.perf_counter() - start, 1e-9)
+    if resume_path is not None:  # kept until here: a stage killed after the choice resumes the search near its end
+        resume_path.unlink(missing_ok=True)
     bar.close()
     write_json(out_dir / SUMMARY_FILE, summary)
     return result
@@ -515,7 +524,7 @@ _REPLAY_ARRAYS = ("observations", "next_observations", "actions", "rewards", "do
 def _compact_replay_buffer(learner: Any) -> Iterator[None]:
     """While pickling: an off-policy learner's replay buffer cut to its filled rows (the rest are zeros)."""
     buffer = getattr(learner, "replay_buffer", None)
-    if buffer is None or buffer.full:
+    if buffer is None or buffer.full or buffer.optimize_memory_usage:  # the latter keeps a row at ``pos``
         yield
         return
     whole = {name: getattr(buffer, name) for name in _REPLAY_ARRAYS if getattr(buffer, name, None) is not None}
@@ -541,17 +550,37 @@ def _expand_replay_buffer(learner: Any) -> None:
             setattr(buffer, name, whole)
 
 
-def _load_search(path: Path | None, key: dict[str, Any]) -> dict[str, Any] | None:
-    """The band search saved at ``path`` when it was written under the same ``key`` (env, settings, code; saying
-    so), else ``None`` (saying why, when a search of other settings or code is ignored)."""
+def _versions() -> dict[str, str]:
+    """The versions of the libraries a saved learner is pickled with (another version may not load it alike)."""
+    from importlib.metadata import version
+
+    return {name: version(name) for name in ("stable-baselines3", "torch", "gymnasium", "mujoco", "numpy")}
+
+
+def _save_search(path: Path, header: dict[str, Any], trainee: bytes) -> None:
+    """Write a search's state atomically: ``header`` (key, search state, curve) pickled, then the trainee's bytes."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        pickle.dump(header, f, protocol=pickle.HIGHEST_PROTOCOL)
+        f.write(trainee)
+
+
+def _load_search(path: Path | None, key: dict[str, Any]) -> tuple[dict[str, Any], bytes] | None:
+    """The header and trainee bytes of the band search saved at ``path`` when it was written under the same ``key``
+    (env, settings, code, library versions; saying so), else ``None`` (saying why, when a state is ignored)."""
     if path is None or not path.exists():
         return None
-    saved = pickle.loads(path.read_bytes())
-    if {name: saved.get(name) for name in key} != key:
-        tqdm.write(f"ignoring behaviour search state {path}: it belongs to other settings or code")
+    try:
+        with open(path, "rb") as f:
+            header = pickle.load(f)
+            trainee = f.read()
+    except Exception as err:  # a state that cannot be read is of no use: start over (and overwrite it)
+        tqdm.write(f"ignoring behaviour search state {path}: unreadable ({type(err).__name__}: {err})")
         return None
-    tqdm.write(f"resuming the behaviour search after {len(saved['curve'])} evaluations ({path})")
-    return saved
+    if not isinstance(header, dict) or {name: header.get(name) for name in key} != key:
+        tqdm.write(f"ignoring behaviour search state {path}: it belongs to other settings, code or libraries")
+        return None
+    tqdm.write(f"resuming the behaviour search after {len(header['curve'])} evaluations ({path})")
+    return header, trainee
 
 
 # -- datasets -------------------------------------------------------------------------------------------------
