@@ -49,3 +49,17 @@ def test_other_notices_still_print() -> None:
         "print(f.notifications['gymnasium_robotics'][g.__version__])\n"
     )
     assert "another notice" in _output(code)
+
+
+def test_halfcheetah_compiles_without_mujocos_settotalmass_warning_and_other_warnings_still_print() -> None:
+    code = (
+        "import gymnasium as gym\n"
+        "import mujoco\n"
+        "gym.make('HalfCheetah-v5')\n"  # MuJoCo's own warning, without us
+        "from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator\n"
+        "LocomotionSimulator('HalfCheetah-v5')\n"
+        "LocomotionSimulator('HalfCheetah-v5')\n"
+        "mujoco.get_mju_user_warning()('another warning')\n"
+    )
+    printed = _output(code)
+    assert printed.count("settotalmass") == 1 and "WARNING: another warning" in printed

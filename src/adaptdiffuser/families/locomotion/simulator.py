@@ -13,6 +13,7 @@ tolerance.
 
 from __future__ import annotations
 
+import sys
 from typing import Any
 
 import gymnasium as gym
@@ -26,6 +27,30 @@ __all__ = ["DATASET_KINDS", "ENV_IDS", "LocomotionSimulator", "env_id_of", "pars
 
 #: envs with a healthy check (healthy reward and termination when unhealthy)
 _HEALTHY_ENVS = ("Hopper-v5", "Walker2d-v5")
+
+
+#: MuJoCo's warning about an attribute of gymnasium's HalfCheetah model, printed each time the model is compiled
+_SETTOTALMASS = "compiler attribute 'settotalmass' is deprecated"
+
+
+def silence_settotalmass_warning() -> None:
+    """Drop MuJoCo's deprecation warning about ``settotalmass`` in gymnasium's HalfCheetah-v5 model (its file is not
+    ours to change), printed for every env made, so that a long run's log shows its progress. MuJoCo's other warnings
+    still go where they went (to the handler installed before, else printed to stderr)."""
+    previous = mujoco.get_mju_user_warning()
+    if getattr(previous, "drops_settotalmass", False):
+        return
+
+    def warn(message: str) -> None:
+        if _SETTOTALMASS in message:
+            return
+        if previous is not None:
+            previous(message)
+        else:
+            print(f"WARNING: {message}", file=sys.stderr, flush=True)
+
+    warn.drops_settotalmass = True  # type: ignore[attr-defined]
+    mujoco.set_mju_user_warning(warn)
 
 
 def env_id_of(name: str) -> str:
@@ -44,6 +69,7 @@ class LocomotionSimulator(Simulator):
         if episode_steps <= 0:
             raise ValueError(f"episode_steps must be positive, got {episode_steps}")
         self._init_args = (env_id, episode_steps, exact_state, dict(env_kwargs))
+        silence_settotalmass_warning()
         self.env = gym.make(env_id, **env_kwargs).unwrapped
         if exact_state:
             self.env.model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_WARMSTART)
