@@ -281,7 +281,7 @@ def pick_place_controller(
     p = task.settings.pick_place
     horizon = planner.horizon
     guidance = place_guidance(planner, alpha, int(p.guide_from * horizon), p.next_block, p.guide_on)
-    condition = None
-    if p.hold is not None:
-        condition = place_condition(planner, int(p.hold[0] * horizon), int(p.hold[1] * horizon), p.next_block)
+    condition, steps = None, p.hold_steps(horizon)
+    if steps is not None:
+        condition = place_condition(planner, *steps, p.next_block)
     return task_controller(task, planner, seed, guidance, record, condition)

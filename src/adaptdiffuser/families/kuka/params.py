@@ -134,6 +134,14 @@ class PickPlaceSettings(BaseModel):
             raise ValueError(f"hold must be [from, to] fractions of the horizon with from < to, got {hold}")
         return hold
 
+    def hold_steps(self, horizon: int) -> tuple[int, int] | None:
+        """The plan steps ``hold`` covers in a ``horizon``-step plan: from ``first`` to before ``last``, never step 0
+        (the real start); None without a hold."""
+        if self.hold is None:
+            return None
+        first, last = (max(1, int(f * horizon)) for f in self.hold)
+        return first, last
+
 
 class SelectionSettings(BaseModel):
     """What the discriminator asks of an executed pick-and-place episode besides tracking (our addition)."""
@@ -187,14 +195,13 @@ class KukaTaskParams(BaseModel):
         """Plans at least two steps long, a hold span that holds some step of them, replans within a plan."""
         if task.diffusion.horizon < 2:
             raise ConfigError(f"task.{task.name}.diffusion.horizon: KUKA plans need at least 2 steps")
-        hold, horizon = self.pick_place.hold, task.diffusion.horizon
-        if hold is not None:
-            first, last = (max(1, int(f * horizon)) for f in hold)  # as the controller cuts the span
-            if first >= last:
-                raise ConfigError(
-                    f"task.{task.name}.pick_place.hold: {hold} of a {horizon}-step plan holds no step "
-                    f"(from step {first} to before step {last}); widen the span"
-                )
+        horizon = task.diffusion.horizon
+        steps = self.pick_place.hold_steps(horizon)
+        if steps is not None and steps[0] >= steps[1]:
+            raise ConfigError(
+                f"task.{task.name}.pick_place.hold: {self.pick_place.hold} of a {horizon}-step plan holds no step "
+                f"(from step {steps[0]} to before step {steps[1]}); widen the span"
+            )
         every = self.planning.replan_every
         if every is not None and every > horizon - 1:
             raise ConfigError(
