@@ -112,6 +112,7 @@ def test_profile_list() -> None:
         "science-medium",
         "science-large",
         "science-locomotion",
+        "science-walker2d",
         "science-umaze",
         *PAPER,
     }
