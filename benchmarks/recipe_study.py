@@ -37,6 +37,7 @@ import yaml
 
 from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.io import write_json
+from adaptdiffuser.tooling.processes import die_with_parent
 
 HERE = Path(__file__).resolve().parent
 
@@ -75,7 +76,7 @@ def run_curve(args: argparse.Namespace, name: str, recipe: dict[str, Any], seed:
     for key, value in (recipe.get("set") or {}).items():
         command += ["--set", f"{key}={json.dumps(value)}"]
     print(f"== {name}, training seed {seed}: {recipe['steps']} steps {recipe.get('set') or {}}", flush=True)
-    subprocess.run(command, check=True)
+    subprocess.run(command, check=True, preexec_fn=die_with_parent)  # a stopped study stops its curve
 
 
 def summarize(recipes: dict[str, dict[str, Any]], out_dir: Path, seeds: list[int]) -> dict[str, Any]:

@@ -23,6 +23,7 @@ import yaml
 from adaptdiffuser.config import Params, SweepParams, params_from_dict, set_dotted
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.tooling.dvc_stages import DvcStage, key_touches, resolve_stages, upstream
+from adaptdiffuser.tooling.processes import die_with_parent
 
 # The stages (by their dvc.yaml name) whose metrics an objective reads, and the key each one's metrics go under.
 OBJECTIVE_STAGES: dict[str, tuple[str, ...]] = {
@@ -219,16 +220,6 @@ def _link_inputs(root: Path, trial_dir: Path, plan: TrialPlan) -> None:
             target.symlink_to(source, target_is_directory=source.is_dir())
 
 
-def _die_with_parent() -> None:
-    """In the child, before exec: on Linux, ask for SIGKILL when the worker that started it dies (a killed worker
-    leaves no stage running on in its trial folder); elsewhere nothing."""
-    if sys.platform.startswith("linux"):
-        import ctypes
-        import signal
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
 def run_stage_command(stage: DvcStage, cwd: Path, env: dict[str, str]) -> None:
     """Run a stage's ``cmd`` as DVC would (in ``cwd``; ``python`` is this interpreter), output in ``logs/``."""
     argv = shlex.split(stage.cmd)
@@ -238,7 +229,7 @@ def run_stage_command(stage: DvcStage, cwd: Path, env: dict[str, str]) -> None:
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "w") as out:
         code = subprocess.run(
-            argv, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT, preexec_fn=_die_with_parent
+            argv, cwd=cwd, env=env, stdout=out, stderr=subprocess.STDOUT, preexec_fn=die_with_parent
         ).returncode
     if code != 0:
         tail = "\n".join(log.read_text(errors="replace").splitlines()[-15:])
