@@ -221,3 +221,17 @@ def test_over_seeds_with_one_seed_changes_nothing_but_adds_the_seed() -> None:
     merged = over_seeds({0: metrics})
     assert {k: merged[k] for k in metrics} == metrics
     assert merged["stderr_over"] == "episodes" and merged["n_seeds"] == 1 and merged["seeds"] == {"0": metrics}
+
+
+def test_a_summary_with_its_dataset_draws_the_datasets_score(tmp_path: Path) -> None:
+    """The figure of a task whose summary gives its dataset's score shows it (a dashed line): does the planner beat
+    its data? Without it, the figure is the plain score by phase."""
+    phase0 = {"score_mean": 33.0, "score_stderr": 0.2, "return_mean": 3800.0, "n_episodes": 10}
+    plain = tmp_path / "plain.json"
+    plain.write_text(json.dumps({"cheetah": {"phase_0": phase0}}))
+    with_data = tmp_path / "data.json"
+    with_data.write_text(json.dumps({"cheetah": {"phase_0": phase0, "dataset": {"score_mean": 20.0}}}))
+    rows = run_report(tmp_path, plain, tmp_path / "plain")["cheetah"]
+    assert run_report(tmp_path, with_data, tmp_path / "data")["cheetah"] == rows  # the table is the phases'
+    drawn = [(tmp_path / name / report_plot_path("cheetah")).read_bytes() for name in ("plain", "data")]
+    assert drawn[0] != drawn[1]

@@ -84,11 +84,15 @@ def save_score_by_phase(
     control: tuple[list[int], list[float], list[float]] | None = None,
     seed_points: tuple[list[int], list[float]] | None = None,
     control_seed_points: tuple[list[int], list[float]] | None = None,
+    dataset_score: float | None = None,
 ) -> None:
     """One PNG: normalized score of each phase with standard-error bars (phase 0 is the Diffuser baseline) and,
-    when given, each phase's equal-compute control (phase k-1's model trained as long on expert data only) and
-    each training seed's own score as small dots (``(phase, score)`` pairs)."""
+    when given, each phase's equal-compute control (phase k-1's model trained as long on expert data only), each
+    training seed's own score as small dots (``(phase, score)`` pairs) and the expert dataset's mean score as a
+    dashed line (does the planner beat its data?)."""
     fig, ax = plt.subplots(figsize=(4.4, 3.2))
+    if dataset_score is not None:
+        ax.axhline(dataset_score, color="grey", ls="--", lw=1, label=f"dataset ({dataset_score:.1f})")
     line = ax.errorbar(phases, means, yerr=stderrs, marker="o", capsize=4, label="AdaptDiffuser")
     if seed_points is not None and seed_points[0]:
         ax.plot(*seed_points, ".", color=line[0].get_color(), alpha=0.5, ms=5, label="training seeds")

@@ -196,6 +196,7 @@ def run_report(root: Path, summary_path: Path | None = None, into: Path | None =
             ),
             seed_points=seeds["score_mean"],
             control_seed_points=seeds["control_score_mean"],
+            dataset_score=task_summary.get("dataset", {}).get("score_mean"),
         )
         tables[task] = rows
     return tables
