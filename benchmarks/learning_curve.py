@@ -22,7 +22,7 @@ output and resume files, so variants of one task and seed never share a resume s
 
     python benchmarks/learning_curve.py WORKSPACE --task maze2d-medium --steps 40000 --every 4000
         [--seed 7] [--episodes 30] [--training-seed 0] [--set pretrain.lr=0.001 ...] [--label NAME]
-        [--out curve.jsonl] [--device cpu] [--quiet]
+        [--out curve.jsonl] [--keep-model DIR] [--device cpu] [--quiet]
 
 WORKSPACE is a pipeline folder whose task has its dataset and reference (`dvc repro reference@<task>`).
 """
@@ -39,7 +39,7 @@ import numpy as np
 import torch
 import yaml
 
-from adaptdiffuser.checkpoint import ModelBundle
+from adaptdiffuser.checkpoint import ModelBundle, save_bundle
 from adaptdiffuser.config import params_from_dict, set_dotted
 from adaptdiffuser.config.tasks import TaskParams
 from adaptdiffuser.contract import TaskFiles
@@ -71,6 +71,13 @@ def main() -> None:
                         help="a setting of the task for this curve, e.g. pretrain.lr=0.001 (repeatable)")  # fmt: skip
     parser.add_argument("--label", default=None, help="the variant's name in the output and resume files")
     parser.add_argument("--out", type=Path, default=None, help="default: learning_curve-<task>[-label]-seed<s>.jsonl")
+    parser.add_argument(
+        "--keep-model",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="save the trained model (a bundle, as pretrain writes) into DIR at the last step",
+    )
     parser.add_argument("--device", default="auto")
     parser.add_argument("--quiet", action="store_true", help="no progress bar while training")
     args = parser.parse_args()
@@ -152,6 +159,8 @@ def main() -> None:
 
     train(bundle, dataset, cfg, device, resume, run_id, progress=not args.quiet, compiled=params.compile.training,
           on_checkpoint=evaluate)  # fmt: skip
+    if args.keep_model is not None:
+        save_bundle(args.keep_model, bundle)
     resume.unlink(missing_ok=True)
 
 
