@@ -81,7 +81,14 @@ def main() -> None:
     task = params_from_dict(raw).resolve(name)
     data = read_trajectories(root / dataset_path(name))
     device = torch.device("cpu")
-    record: dict = {"task": name, "phase": args.phase, "starts": args.starts, "seed": args.seed, "seeds": {}}
+    record: dict = {
+        "task": name,
+        "phase": args.phase,
+        "model": str(args.model or ""),
+        "starts": args.starts,
+        "seed": args.seed,
+        "seeds": {},
+    }
     for training_seed in args.training_seeds:
         bundle = load_bundle(args.model or root / model_dir(name, args.phase, training_seed), device)
         planner = Planner(bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), device)
@@ -98,7 +105,8 @@ def main() -> None:
             "step_autocorrelation_data": step_autocorrelation(real).round(3).tolist(),
         }
         record["seeds"][str(training_seed)] = entry
-        print(f"{name} phase {args.phase} seed {training_seed}: roughness plan / data per observation dim "
+        which = args.model or f"phase {args.phase} seed {training_seed}"
+        print(f"{name} {which}: roughness plan / data per observation dim "
               f"{np.round(ratio, 1).tolist()}")  # fmt: skip
         print(f"  lag-1 autocorrelation of steps, plan {np.round(entry['step_autocorrelation_plan'], 2).tolist()}")
         print(f"  lag-1 autocorrelation of steps, data {np.round(entry['step_autocorrelation_data'], 2).tolist()}")
