@@ -113,6 +113,7 @@ def test_profile_list() -> None:
         "science-large",
         "science-locomotion",
         "science-walker2d",
+        "science-walker2d-w32",
         "science-halfcheetah",
         "science-umaze",
         *PAPER,
