@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import textwrap
 import time
 from collections.abc import Callable
@@ -174,12 +175,19 @@ TINY = {"max_train_steps": 600, "eval_every": 150, "min_eval_every": 150, "eval_
         "batch_size": 50}  # fmt: skip
 
 
-def test_a_real_learner_goes_back_and_is_refused_when_every_score_is_above_the_band(tmp_path: Path) -> None:
+def test_a_real_learner_goes_back_and_is_refused_when_every_score_is_above_the_band(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """PPO on Hopper with a band below anything it scores: every evaluation sends it back to its start (reloaded
-    learner, reseeded, replay cut), until the budget is spent; the curve shows each try."""
+    learner, reseeded, replay cut), until the budget is spent; the curve shows each try. Training, reloaded or not,
+    leaves no SB3 log folder in the temporary directory (its default logger makes one per call)."""
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     settings = BehaviourSettings(seed=0, medium_score=-500.0, medium_band=1.0, **TINY)
     with pytest.raises(BandNotReachedError, match="within 600 training steps .*went back 4 times"):
         train_behaviour("Hopper-v5", tmp_path, settings)
+    assert list(scratch.glob("SB3-*")) == []
     curve = json.loads((tmp_path / "behaviour.json").read_text())["curve"]
     assert [p["action"] for p in curve] == ["rewind"] * 4
     assert [p["steps"] for p in curve] == [150] * 4 and [p["spent"] for p in curve] == [150, 300, 450, 600]

@@ -259,6 +259,15 @@ def _algorithm_class(name: str) -> type:
     return {"sac": SAC, "td3": TD3, "ppo": PPO}[name]
 
 
+def _learn(learner: Any, steps: int, callback: Any) -> None:
+    """``learner.learn`` for ``steps`` more steps with a logger that writes nowhere: SB3's default one would leave an
+    empty ``SB3-<time>`` folder in the temporary directory on every call (hundreds per collection)."""
+    from stable_baselines3.common.logger import Logger
+
+    learner.set_logger(Logger(folder=None, output_formats=[]))
+    learner.learn(steps, reset_num_timesteps=False, callback=callback)
+
+
 def make_learner(env: gym.Env, settings: BehaviourSettings) -> Any:
     """A fresh SB3 learner on ``env`` with the settings' algorithm, networks and seed (CPU)."""
     cls = _algorithm_class(settings.algorithm)
@@ -341,8 +350,7 @@ def train_behaviour(
     def phase(learner: Any, target: float, limit: int, name: str, start: float) -> tuple[dict[str, Any], Any]:
         best = -math.inf
         while learner.num_timesteps < limit:
-            learner.learn(min(settings.eval_every, limit - learner.num_timesteps), reset_num_timesteps=False,
-                          callback=_Bar())  # fmt: skip
+            _learn(learner, min(settings.eval_every, limit - learner.num_timesteps), _Bar())
             returns = evaluate_policy_returns(learner, eval_sim, settings.eval_episodes, settings.eval_seed)
             score = float(normalized_score(returns.mean(), env_id))
             best = max(best, score)
@@ -455,7 +463,7 @@ class _Learner:
 
     def train(self, steps: int) -> int:
         before = self.learner.num_timesteps
-        self.learner.learn(steps, reset_num_timesteps=False, callback=self.callback())
+        _learn(self.learner, steps, self.callback())
         return int(self.learner.num_timesteps - before)
 
     def steps(self) -> int:
