@@ -16,6 +16,7 @@ seeds).
 
     python benchmarks/recipe_study.py WORKSPACE --task maze2d-umaze --recipes benchmarks/recipes/maze2d-umaze.yaml
         [--training-seeds 0 1 2] [--every 500] [--episodes 50] [--seed 7] [--out-dir recipe-study] [--quiet]
+        [--only RECIPE ...]
 
 A value-guided task (``--task hopper-medium --recipes benchmarks/recipes/hopper-medium.yaml``) trains its value
 function in each curve, and the curve's CPU minutes include it (``value.*`` keys of ``set`` change it).
@@ -52,6 +53,19 @@ def load_recipes(path: Path) -> dict[str, dict[str, Any]]:
         if unknown:
             raise SystemExit(f"{path}: recipe {name!r} has unknown keys {sorted(unknown)} (steps, set)")
     return recipes
+
+
+Recipes = dict[str, dict[str, Any]]
+
+
+def select_recipes(recipes: Recipes, names: list[str] | None, path: Path) -> Recipes:
+    """The recipes named (all when ``names`` is None), in the file's order; a clear error for a name not in it."""
+    if names is None:
+        return recipes
+    unknown = [name for name in names if name not in recipes]
+    if unknown:
+        raise SystemExit(f"{path}: no recipe {unknown[0]!r}; its recipes: {sorted(recipes)}")
+    return {name: recipe for name, recipe in recipes.items() if name in names}
 
 
 def curve_path(out_dir: Path, name: str, seed: int) -> Path:
@@ -149,9 +163,10 @@ def main() -> None:
     parser.add_argument("--out-dir", type=Path, default=Path("recipe-study"))
     parser.add_argument("--device", default="auto")
     parser.add_argument("--quiet", action="store_true", help="no progress bars while training")
+    parser.add_argument("--only", nargs="+", metavar="RECIPE", help="train, summarize and draw only these recipes")
     parser.add_argument("--summary-only", action="store_true", help="summarize and draw what is there, train none")
     args = parser.parse_args()
-    recipes = load_recipes(args.recipes)
+    recipes = select_recipes(load_recipes(args.recipes), args.only, args.recipes)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     if not args.summary_only:
         for seed in args.training_seeds:  # every recipe on one seed before the next: comparable early
