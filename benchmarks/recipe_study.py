@@ -43,7 +43,10 @@ from adaptdiffuser.tooling.processes import die_with_parent
 HERE = Path(__file__).resolve().parent
 
 
-def load_recipes(path: Path) -> dict[str, dict[str, Any]]:
+Recipes = dict[str, dict[str, Any]]
+
+
+def load_recipes(path: Path) -> Recipes:
     """``name -> {steps, set}`` from a recipe file; a clear error for a recipe without positive ``steps``."""
     recipes = yaml.safe_load(path.read_text()) or {}
     for name, recipe in recipes.items():
@@ -53,9 +56,6 @@ def load_recipes(path: Path) -> dict[str, dict[str, Any]]:
         if unknown:
             raise SystemExit(f"{path}: recipe {name!r} has unknown keys {sorted(unknown)} (steps, set)")
     return recipes
-
-
-Recipes = dict[str, dict[str, Any]]
 
 
 def select_recipes(recipes: Recipes, names: list[str] | None, path: Path) -> Recipes:
