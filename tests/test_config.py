@@ -112,6 +112,7 @@ def test_profile_list() -> None:
         "science-medium",
         "science-large",
         "science-locomotion",
+        "science-hopper",
         "science-walker2d",
         "science-walker2d-w32",
         "science-halfcheetah",
