@@ -32,7 +32,8 @@ REPO = Path(__file__).resolve().parents[1]
 def clone_at(commit: str, dest: Path) -> str:
     """Clone this repository into ``dest`` at ``commit``; return the full hash."""
     subprocess.run(["git", "clone", "-q", str(REPO), str(dest)], check=True)
-    subprocess.run(["git", "-C", str(dest), "checkout", "-q", commit], check=True)
+    if subprocess.run(["git", "-C", str(dest), "checkout", "-q", commit], capture_output=True).returncode != 0:
+        sys.exit(f"{commit!r} is not a commit of {REPO}")
     return subprocess.run(
         ["git", "-C", str(dest), "rev-parse", "HEAD"], check=True, capture_output=True, text=True
     ).stdout.strip()
