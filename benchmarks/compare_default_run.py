@@ -109,6 +109,7 @@ def main() -> None:
     root = args.keep or Path(tempfile.mkdtemp(prefix="default-run-"))
     root.mkdir(parents=True, exist_ok=True)
     figures: list[dict] = []
+    cpu, day = machine(), time.strftime("%Y-%m-%d", time.gmtime())
     try:
         for i, commit in enumerate(args.commits):
             workspace = root / f"run{i}"
@@ -122,8 +123,8 @@ def main() -> None:
                     "name": commit,
                     "commit": full,
                     "profile": args.profile,
-                    "machine": machine(),
-                    "date": time.strftime("%Y-%m-%d", time.gmtime()),
+                    "machine": cpu,
+                    "date": day,
                     **times,
                     "phases": phase_scores(workspace),
                 }
