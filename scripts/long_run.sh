@@ -10,7 +10,8 @@
 #       runs `dvc repro` itself and reruns cleanly (scripts/science_maze.sh: both Maze2D recipes)
 #   bash scripts/long_run.sh resume FOLDER [--foreground]
 #       continue where it stopped: DVC skips the stages that finished, training resumes from its last checkpoint
-#       (models/.resume/), the other stages rerun from their start (minutes at most)
+#       (models/.resume/), an evaluation from its last finished training seed, the other stages rerun from their
+#       start (minutes at most)
 #   bash scripts/long_run.sh status FOLDER
 #       the pinned commit, whether it runs, the stages left, the resume states and the log's last lines
 #   bash scripts/long_run.sh stop FOLDER
@@ -23,7 +24,7 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,22p' "$0" >&2; exit 2; }
+usage() { sed -n '4,23p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
@@ -130,6 +131,8 @@ for state in sorted(Path("models/.resume").glob("*.pt")):
         except Exception as err:  # a state being replaced, or from another torch: say so and go on
             step = f"unreadable: {err.__class__.__name__}"
         print(f"resume state: {state.name} (step {step})")
+for record in sorted(Path("models/.resume").glob("*/record.json")):  # an evaluation's finished training seeds
+    print(f"evaluated: {record.parent.name}")
 EOF
     # progress bars rewrite their line with carriage returns: show each bar's latest state only
     tail -c 20000 long_run.log 2>/dev/null | sed 's/.*\r//' | tail -n 5 | sed 's/^/log: /' || true

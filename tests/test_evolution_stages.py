@@ -24,8 +24,12 @@ from adaptdiffuser.layout import (
     generated_path,
     model_dir,
     phase_metrics_path,
+    plots_dir,
     results_dir,
+    seed_record_dir,
     selected_path,
+    unseen_metrics_path,
+    unseen_plots_dir,
 )
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.collect import run_collect
@@ -213,3 +217,53 @@ def test_control_evaluation_reports_the_paired_gain(phase1_root: tuple[Path, Par
     assert control["n_seeds"] == 1 and control["stderr_over"] == "episodes"  # one training seed
     assert json.loads((root / phase_metrics_path(TASK, 1, control=True)).read_text()) == control
     assert (root / results_dir(TASK, 1, 0, control=True) / "episodes.parquet").exists()
+
+
+@pytest.mark.parametrize("stage", ["evaluate", "evaluate-unseen"])
+def test_an_evaluation_stopped_on_a_seed_takes_up_the_seeds_before_it(
+    phase1_root: tuple[Path, Params], tmp_path: Path, capfd: pytest.CaptureFixture[str], stage: str
+) -> None:
+    """An evaluation stage that stops on its second training seed (whose model is missing) has recorded the first;
+    run again once that model is there, after its outputs were removed (as DVC does), it plays only the second
+    seed's episodes, puts the first seed's files back byte for byte with the same metrics, and leaves no record."""
+    root, params = phase1_root
+    copy = tmp_path / "project"
+    shutil.copytree(root, copy)
+    run_reference(params, TASK, copy, progress=False)
+    two = dataclasses.replace(params, seeds=(0, 7))
+    if stage == "evaluate":
+        evaluate, outputs = run_evaluate, [results_dir(TASK, 0, 0), plots_dir(TASK, 0, 0)]
+    else:
+        evaluate, outputs = run_evaluate_unseen, [unseen_plots_dir(TASK, 0, 0)]
+    with pytest.raises(FileNotFoundError):
+        evaluate(two, TASK, copy, 0, CPU, progress=False)
+    record = copy / seed_record_dir(TASK, stage, 0, 0)
+    recorded = json.loads((record / "record.json").read_text())["metrics"]
+    files = {p.relative_to(copy): p.read_bytes() for out in outputs for p in (copy / out).rglob("*") if p.is_file()}
+    assert files and not (copy / seed_record_dir(TASK, stage, 0, 7)).exists()
+    for out in outputs:
+        shutil.rmtree(copy / out)
+    shutil.copytree(copy / model_dir(TASK, 0, 0), copy / model_dir(TASK, 0, 7))
+    capfd.readouterr()
+
+    evaluate(two, TASK, copy, 0, CPU, progress=False)
+    log = capfd.readouterr()
+    assert (log.out + log.err).count("its results are taken up again") == 1
+    again = {p.relative_to(copy): p.read_bytes() for out in outputs for p in (copy / out).rglob("*") if p.is_file()}
+    assert again == files
+    metrics_path = phase_metrics_path(TASK, 0) if stage == "evaluate" else unseen_metrics_path(TASK, 0)
+    saved = json.loads((copy / metrics_path).read_text())
+    assert saved["n_seeds"] == 2 and saved["seeds"]["0"] == recorded
+    assert not record.exists() and not (copy / seed_record_dir(TASK, stage, 0, 7)).exists()
+
+    # a record of another model is not taken up: the seed is played again, saying so
+    other = dataclasses.replace(params, seeds=(0, 8))
+    with pytest.raises(FileNotFoundError):
+        evaluate(other, TASK, copy, 0, CPU, progress=False)
+    shutil.rmtree(copy / model_dir(TASK, 0, 0))
+    shutil.copytree(copy / model_dir(TASK, 1, 0), copy / model_dir(TASK, 0, 0))  # seed 0's phase 0 retrained
+    capfd.readouterr()
+    with pytest.raises(FileNotFoundError):
+        evaluate(other, TASK, copy, 0, CPU, progress=False)
+    log = capfd.readouterr()
+    assert "written for other settings" in log.out + log.err and "taken up again" not in log.out + log.err

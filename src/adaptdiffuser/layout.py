@@ -49,6 +49,12 @@ def resume_path(task: str, phase: int, seed: int, control: bool = False) -> Path
     return Path("models") / ".resume" / f"{task}-{phase_name(phase, control)}-{seed_name(seed)}.pt"
 
 
+def seed_record_dir(task: str, stage: str, phase: int, seed: int, control: bool = False) -> Path:
+    """Where a stage that evaluates one training seed after another keeps a seed's finished results until every
+    seed's are written (ignored by git and DVC; see :mod:`adaptdiffuser.stages.seed_records`)."""
+    return Path("models") / ".resume" / f"{task}-{stage}-{phase_name(phase, control)}-{seed_name(seed)}"
+
+
 def collect_resume_path(task: str) -> Path:
     """Where the collect stage of a task keeps the state of a long data recipe under way, such as a behaviour
     policy's training (ignored by git and DVC; removed by the recipe once it has no more use)."""

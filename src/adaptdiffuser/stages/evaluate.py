@@ -12,16 +12,26 @@ import pyarrow.parquet as pq
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import Params
+from adaptdiffuser.config import Params, TaskParams
 from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, summarize
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import atomic_path, read_json
-from adaptdiffuser.layout import model_dir, phase_metrics_path, phase_name, plots_dir, reference_path, results_dir
+from adaptdiffuser.layout import (
+    model_dir,
+    phase_metrics_path,
+    phase_name,
+    plots_dir,
+    reference_path,
+    results_dir,
+    seed_record_dir,
+)
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import save_over_seeds
+from adaptdiffuser.stages.seed_records import each_seed, evaluation_key, remove_records
+from adaptdiffuser.stages.training_data import code_digest
 from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 
@@ -36,15 +46,45 @@ def run_evaluate(
 ) -> dict:
     """Stage ``evaluate`` (or ``evaluate-control``): :func:`evaluate_seed` for every training seed, on the same
     episodes; write the metrics of every seed and their aggregate (mean and standard error over seeds; see
-    :mod:`adaptdiffuser.seed_metrics`) to ``metrics/tasks/<task>/phase<k>[-control].json``."""
+    :mod:`adaptdiffuser.seed_metrics`) to ``metrics/tasks/<task>/phase<k>[-control].json``. A seed evaluated by an
+    interrupted earlier run of the stage, with the same settings, model and code, is taken from its record
+    (:mod:`adaptdiffuser.stages.seed_records`) instead of being played again."""
     task = params.resolve(task_name)
     ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
-    per_seed = {
-        seed: evaluate_seed(params, task.name, root, phase, device, seed, ref, progress, control)
-        for seed in params.seeds
-    }
+    code = code_digest(root, task.name)
+
+    def record(seed: int) -> Path:
+        return seed_record_dir(task.name, "evaluate", phase, seed, control)
+
+    def key(seed: int) -> str:
+        evolved = [root / results_dir(task.name, phase, seed) / "episodes.parquet"] if control else []
+        model = root / model_dir(task.name, phase, seed, control)
+        return evaluation_key(_settings(params, task, seed), ref, code, model=model, files=evolved)
+
+    per_seed = each_seed(
+        root,
+        params.seeds,
+        record,
+        key,
+        lambda seed: [results_dir(task.name, phase, seed, control), plots_dir(task.name, phase, seed, control)],
+        lambda seed: evaluate_seed(params, task.name, root, phase, device, seed, ref, progress, control),
+    )
     stage = "evaluate-control" if control else "evaluate"
-    return save_over_seeds(per_seed, phase_metrics_path(task.name, phase, control), task.name, stage, phase, root)
+    path = phase_metrics_path(task.name, phase, control)
+    metrics = save_over_seeds(per_seed, path, task.name, stage, phase, root)
+    remove_records(root, map(record, params.seeds))
+    return metrics
+
+
+def _settings(params: Params, task: TaskParams, seed: int) -> dict:
+    """What decides one seed's evaluation besides its model, its code and the reference scores."""
+    return {
+        "task": task.section("settings"),
+        "planner": task.section("planner"),
+        "evaluate": task.section("evaluate"),
+        "compile": {"sampling": params.compile.sampling},
+        "seed": seed,
+    }
 
 
 def evaluate_seed(
@@ -72,14 +112,7 @@ def evaluate_seed(
     if control and not evolved_table.exists():
         raise FileNotFoundError(f"{evolved_table}: phase {phase}'s evaluation, needed for the gain over its control")
     ev, pl = task.evaluate, task.planner
-    logged = {
-        "task": task.section("settings"),
-        "planner": task.section("planner"),
-        "evaluate": task.section("evaluate"),
-        "model": {"path": str(model), "data": bundle.config.get("data", {})},
-        "compile": {"sampling": params.compile.sampling},
-        "seed": seed,
-    }
+    logged = _settings(params, task, seed) | {"model": {"path": str(model), "data": bundle.config.get("data", {})}}
     name = phase_name(phase, control)
     with stage_run(task.name, "evaluate-control" if control else "evaluate", phase, logged, root, seed=seed):
         files = TaskFiles(root, task.name, model, seed)

@@ -9,13 +9,15 @@ import mlflow
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import ConfigError, Params
+from adaptdiffuser.config import ConfigError, Params, TaskParams
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import read_json, write_json
-from adaptdiffuser.layout import model_dir, reference_path, unseen_metrics_path, unseen_plots_dir
+from adaptdiffuser.layout import model_dir, reference_path, seed_record_dir, unseen_metrics_path, unseen_plots_dir
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import save_over_seeds
+from adaptdiffuser.stages.seed_records import each_seed, evaluation_key, remove_records
+from adaptdiffuser.stages.training_data import code_digest
 from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 
@@ -34,7 +36,8 @@ def run_evaluate_unseen(
 ) -> dict:
     """:func:`evaluate_unseen_seed` for every training seed; write every seed's metrics and their mean to
     ``metrics/tasks/<task>/phase<k>[-control]-unseen.json`` (``{<unseen task>: metrics, ...}``) and return the
-    mean's metrics. A task outside ``unseen_tasks`` (its family has no unseen task) gets a file saying so."""
+    mean's metrics (a seed that an interrupted earlier run evaluated alike is taken from its record, as in
+    ``evaluate``). A task outside ``unseen_tasks`` (its family has no unseen task) gets a file saying so."""
     task = params.resolve(task_name)
     if task.name not in params.unseen_tasks:  # the phases' stages follow `evolve`, whatever its family
         skipped = {"n_episodes": 0, "skipped": f"{task.name} is not in unseen_tasks (its family has no unseen task)"}
@@ -43,13 +46,40 @@ def run_evaluate_unseen(
         return skipped
     ref = read_json(root / reference_path(task.name), f"reference scores of {task.name} (run reference@{task.name})")
     unseen = get_family(task.family).unseen_task
-    per_seed = {
-        seed: {unseen: evaluate_unseen_seed(params, task.name, root, phase, device, seed, ref, progress, control)}
-        for seed in params.seeds
-    }
+    code = code_digest(root, task.name)
+
+    def record(seed: int) -> Path:
+        return seed_record_dir(task.name, "evaluate-unseen", phase, seed, control)
+
+    def key(seed: int) -> str:
+        model = root / model_dir(task.name, phase, seed, control)
+        return evaluation_key(_settings(params, task, unseen, seed), ref, code, model=model)
+
+    per_seed = each_seed(
+        root,
+        params.seeds,
+        record,
+        key,
+        lambda seed: [unseen_plots_dir(task.name, phase, seed, control)],
+        lambda seed: {
+            unseen: evaluate_unseen_seed(params, task.name, root, phase, device, seed, ref, progress, control)
+        },
+    )
     path = unseen_metrics_path(task.name, phase, control)
     metrics = save_over_seeds(per_seed, path, task.name, stage_name(control), phase, root)
+    remove_records(root, map(record, params.seeds))
     return metrics[unseen]
+
+
+def _settings(params: Params, task: TaskParams, unseen: str, seed: int) -> dict:
+    """What decides one seed's evaluation on the unseen task besides its model, its code and the reference scores."""
+    return {
+        unseen: task.section(unseen),
+        "alpha": params.alpha,
+        "planner": task.section("planner"),
+        "compile": {"sampling": params.compile.sampling},
+        "seed": seed,
+    }
 
 
 def evaluate_unseen_seed(
@@ -72,13 +102,7 @@ def evaluate_unseen_seed(
         raise ConfigError(f"unseen_tasks: {task.name} is of family {task.family}, which has no unseen task")
     bundle = load_bundle(root / model_dir(task.name, phase, seed, control), device)
     pl = task.planner
-    logged = {
-        unseen: task.section(unseen),
-        "alpha": params.alpha,
-        "planner": task.section("planner"),
-        "compile": {"sampling": params.compile.sampling},
-        "seed": seed,
-    }
+    logged = _settings(params, task, unseen, seed)
     with stage_run(task.name, stage_name(control), phase, logged, root, seed=seed):
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device, params.compile.sampling)
         pictures = root / unseen_plots_dir(task.name, phase, seed, control)
