@@ -53,7 +53,8 @@ def run_evaluate_unseen(
 
     def key(seed: int) -> str:
         model = root / model_dir(task.name, phase, seed, control)
-        return evaluation_key(_settings(params, task, unseen, seed), ref, code, model=model)
+        settings = _settings(params, task, unseen, seed) | {"task": task.section("settings")}  # all of the family's
+        return evaluation_key(settings, ref, code, model=model)
 
     per_seed = each_seed(
         root,
