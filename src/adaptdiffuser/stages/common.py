@@ -41,6 +41,16 @@ def file_digest(path: Path) -> str:
     return h.hexdigest()
 
 
+def source_digest(path: Path) -> str:
+    """SHA-256 of a file, or of a folder's files (their relative paths and contents, in sorted order)."""
+    if path.is_file():
+        return file_digest(path)
+    h = hashlib.sha256()
+    for file in sorted(p for p in path.rglob("*") if p.is_file()):
+        h.update(str(file.relative_to(path)).encode() + b"\0" + file_digest(file).encode())
+    return h.hexdigest()
+
+
 def phase_entries(task_summary: dict) -> list[tuple[int, dict]]:
     """``(k, entry)`` of every ``phase_k`` entry of one task's summary, in phase order."""
     phases = [(int(k.removeprefix("phase_")), entry) for k, entry in task_summary.items() if k.startswith("phase_")]

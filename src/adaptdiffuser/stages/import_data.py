@@ -4,7 +4,6 @@ instead of the collect stage, converted by the task's family and written as our 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 from pathlib import Path
 
 import mlflow
@@ -15,21 +14,11 @@ from adaptdiffuser.data.schema import write_trajectories
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import write_json
 from adaptdiffuser.layout import collect_dir, dataset_path
-from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.stages.common import file_digest, source_digest
 from adaptdiffuser.tooling.mlflow_logging import log_params, stage_run
 
 #: what the import writes into the task's collect folder (in place of the collect stage's ``collect.json``)
 IMPORT_SUMMARY = "import.json"
-
-
-def source_digest(path: Path) -> str:
-    """SHA-256 of a file, or of a folder's files (their relative paths and contents, in sorted order)."""
-    if path.is_file():
-        return file_digest(path)
-    h = hashlib.sha256()
-    for file in sorted(p for p in path.rglob("*") if p.is_file()):
-        h.update(str(file.relative_to(path)).encode() + b"\0" + file_digest(file).encode())
-    return h.hexdigest()
 
 
 def read_external(fmt: str, path: str) -> ExternalData:

@@ -5,8 +5,6 @@ live among the resume states, ignored by git and DVC)."""
 
 from __future__ import annotations
 
-import hashlib
-import json
 import shutil
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -14,26 +12,11 @@ from typing import Any
 
 from tqdm import tqdm
 
-from adaptdiffuser.io import atomic_dir, atomic_path
-from adaptdiffuser.stages.common import file_digest
+from adaptdiffuser.io import atomic_dir, atomic_path, read_json, write_json
+from adaptdiffuser.stages.common import source_digest
 from adaptdiffuser.training import fingerprint
 
 RECORD = "record.json"
-
-
-def tree_digest(path: Path) -> str:
-    """SHA-256 over every file under ``path`` (relative names and contents), such as a model bundle's folder."""
-    h = hashlib.sha256()
-    for file in sorted(p for p in path.rglob("*") if p.is_file()):
-        h.update(f"{file.relative_to(path).as_posix()}\0{file_digest(file)}\n".encode())
-    return h.hexdigest()
-
-
-def _plain(value: Any) -> Any:
-    """A NumPy scalar as the Python number it holds (for JSON)."""
-    if hasattr(value, "item"):
-        return value.item()
-    raise TypeError(f"{type(value).__name__} is not JSON-able")
 
 
 def _copy(source: Path, target: Path) -> None:
@@ -53,7 +36,7 @@ def recorded_metrics(root: Path, record: Path, key: str, outputs: list[Path]) ->
     meta = root / record / RECORD
     if not meta.is_file():
         return None
-    saved = json.loads(meta.read_text())
+    saved = read_json(meta)
     if saved.get("key") != key:
         tqdm.write(f"ignoring {record}: it was written for other settings, inputs or code")
         return None
@@ -71,7 +54,7 @@ def write_record(root: Path, record: Path, key: str, metrics: dict, outputs: lis
         for i, out in enumerate(outputs):
             if (root / out).exists():
                 _copy(root / out, tmp / f"output{i}")
-        (tmp / RECORD).write_text(json.dumps({"key": key, "metrics": metrics}, indent=2, default=_plain))
+        write_json(tmp / RECORD, {"key": key, "metrics": metrics})
 
 
 def each_seed(
@@ -105,6 +88,5 @@ def remove_records(root: Path, records: Iterable[Path]) -> None:
 def evaluation_key(*parts: Any, model: Path | None = None, files: Iterable[Path] = ()) -> str:
     """The key of one seed's evaluation: its settings (``parts``, JSON-able), its model folder's contents and the
     digests of any other input files that exist."""
-    digests = [tree_digest(model) if model is not None else None]
-    digests += [file_digest(f) if f.is_file() else None for f in files]
+    digests = [source_digest(path) if path.exists() else None for path in [model, *files] if path is not None]
     return fingerprint(parts, digests)
