@@ -66,8 +66,8 @@ def each_seed(
     run: Callable[[int], dict],
 ) -> dict[int, dict]:
     """``run(seed)`` for every seed, each seed's metrics and ``outputs(seed)`` recorded in ``record(seed)`` as soon as
-    it is done, or taken from a record of the same ``key(seed)`` that an interrupted earlier run left; the records
-    are removed once every seed is done (the caller then writes the stage's own outputs over seeds)."""
+    it is done, or taken from a record of the same ``key(seed)`` that an interrupted earlier run left; the caller
+    removes the records (:func:`remove_records`) once it has written the stage's own outputs over seeds."""
     per_seed = {}
     for seed in seeds:
         seed_key = key(seed)
