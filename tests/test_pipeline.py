@@ -154,7 +154,8 @@ def test_repro_runs_the_kuka_baseline(smoke_repo: Path) -> None:
     setups = [place[f"setup{setup}_score_mean"] for setup in (1, 2)]
     assert all(0.0 <= score <= 100.0 for score in setups) and place["score_mean"] == pytest.approx(np.mean(setups))
     gains = _run(["adaptdiffuser", "gains"], smoke_repo)  # pick-and-place listed under the scores
-    assert f"| {KUKA} | 0 | pick_place | {place['score_mean']:.1f} ± " in gains
+    assert f"| {KUKA} | 0 | pick_place | score | {place['score_mean']:.1f} ± " in gains
+    assert f"| {KUKA} | 0 | pick_place | setup2_score | {place['setup2_score_mean']:.1f} ± " in gains  # per setup
     results = pq.read_table(smoke_repo / f"results/{KUKA}/phase0/seed0/episodes.parquet").to_pydict()
     assert results["length"] == [2 * 15, 2 * 15]  # two open-loop plans of 16 states (15 steps each)
     assert (smoke_repo / f"plots/{KUKA}/phase0/seed0/plan_00.png").read_bytes()[:4] == b"\x89PNG"

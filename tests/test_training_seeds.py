@@ -44,7 +44,7 @@ from adaptdiffuser.stages.report import (
     seed_points,
     unseen_table,
 )
-from adaptdiffuser.stages.summarize import run_summarize
+from adaptdiffuser.stages.summarize import run_summarize, unseen_gain
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = torch.device("cpu")
@@ -141,6 +141,14 @@ def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params], tmp_p
     control_coin = json.loads((root / f"metrics/tasks/{TASK}/phase1-control-unseen.json").read_text())
     assert summary["unseen_task"] == "gold_coin" and phase1["control"]["gold_coin"] == control_coin["gold_coin"]
     assert control_coin["n_seeds"] == 2 and "gold_coin" not in summary["phase_0"].get("control", {})
+    coin_gain = phase1["unseen_gain"]["score"]  # the gold coin's score, phase minus control seed by seed
+    differences = [
+        coin["seeds"][s]["gold_coin"]["score_mean"] - control_coin["seeds"][s]["gold_coin"]["score_mean"]
+        for s in ("0", "3")
+    ]
+    assert coin_gain["per_seed"] == dict(zip(("0", "3"), differences, strict=True))
+    assert coin_gain["gain_stderr"] == pytest.approx(standard_error(differences))
+    assert "unseen_gain" not in summary["phase_0"]
     assert phase1["gain_mean"] == pytest.approx(np.mean([e["gain_mean"] for e in phase1["per_seed"].values()]))
     points = seed_points(summary)
     assert points["score_mean"][0] == [0, 0, 1, 1] and points["control_score_mean"][0] == [1, 1]
@@ -191,17 +199,19 @@ def test_scores_are_tabled_on_d4rl_constants_where_the_task_gives_them() -> None
 
 
 def test_unseen_task_scores_are_tabled_against_the_control() -> None:
-    """A task's unseen-task scores get one row per phase: the phase, its control and the difference, whose standard
-    error adds the two in quadrature (no ``±`` where the family reports none); a task without an unseen task adds
-    no table."""
-    place = {"score_mean": 30.0, "score_stderr": 3.0}
+    """A task's unseen-task scores get one row per phase and score (the headline and, e.g., per setup): the phase,
+    its control and the gain; the gain is the seed-by-seed one of the summary (± over seeds) where it has one,
+    otherwise the difference of the means with the standard errors added in quadrature, marked unpaired (no ``±``
+    where the family reports none); a task without an unseen task adds no table."""
+    place = {"score_mean": 30.0, "score_stderr": 3.0, "setup1_score_mean": 40.0, "setup1_score_stderr": 6.0}
     summary = {
         "arm": {
             "unseen_task": "place",
             "phase_1": {
                 "score_mean": 1.0,
                 "place": place,
-                "control": {"place": {"score_mean": 26.0, "score_stderr": 4.0}},
+                "control": {"place": {"score_mean": 26.0, "score_stderr": 4.0, "setup1_score_mean": 34.0}},
+                "unseen_gain": {"setup1_score": {"gain_mean": 6.0, "gain_stderr": 1.5, "per_seed": {}}},
             },
             "phase_0": {"score_mean": 2.0, "place": {"score_mean": 20.0, "score_stderr": 2.0}},
         },
@@ -209,11 +219,34 @@ def test_unseen_task_scores_are_tabled_against_the_control() -> None:
         "hopper": {"phase_0": {"score_mean": 30.0, "score_stderr": 1.0}},
     }
     assert unseen_table(summary)[2:] == [
-        "| arm | 0 | place | 20.0 ± 2.0 |  |  |",
-        "| arm | 1 | place | 30.0 ± 3.0 | 26.0 ± 4.0 | 4.0 ± 5.0 |",
-        "| maze | 0 | coin | 40.0 |  |  |",
+        "| arm | 0 | place | score | 20.0 ± 2.0 |  |  |",
+        "| arm | 1 | place | score | 30.0 ± 3.0 | 26.0 ± 4.0 | 4.0 ± 5.0 (unpaired) |",
+        "| arm | 1 | place | setup1_score | 40.0 ± 6.0 | 34.0 | 6.0 ± 1.5 |",
+        "| maze | 0 | coin | score | 40.0 |  |  |",
     ]
     assert unseen_table({"hopper": summary["hopper"]}) == []
+
+
+def test_the_unseen_gain_is_taken_seed_by_seed() -> None:
+    """Each score of the unseen task gets the phase's gain over its control seed by seed (the same training seed's
+    pair), mean and standard error over the seeds; with one seed the standard error is unknown (None)."""
+
+    def metrics(per_seed: dict[str, tuple[float, float]]) -> dict:
+        seeds = {
+            s: {"place": {"score_mean": a, "setup2_score_mean": b, "n_episodes": 40}} for s, (a, b) in per_seed.items()
+        }
+        return {"place": {"score_mean": 0.0, "setup2_score_mean": 0.0, "n_episodes": 40}, "seeds": seeds}
+
+    phase = metrics({"0": (10.0, 5.0), "1": (20.0, 0.0), "2": (6.0, 2.5)})
+    control = metrics({"0": (4.0, 5.0), "1": (21.0, 2.5), "2": (0.0, 0.0)})
+    gain = unseen_gain(phase, control, "place")
+    assert set(gain) == {"score", "setup2_score"}
+    assert gain["score"]["per_seed"] == {"0": 6.0, "1": -1.0, "2": 6.0}
+    assert gain["score"]["gain_mean"] == pytest.approx(11.0 / 3)
+    assert gain["score"]["gain_stderr"] == pytest.approx(standard_error([6.0, -1.0, 6.0]))
+    assert gain["setup2_score"]["per_seed"] == {"0": 0.0, "1": -2.5, "2": 2.5}
+    one = unseen_gain(metrics({"0": (10.0, 5.0)}), metrics({"0": (4.0, 5.0)}), "place")
+    assert one["score"] == {"gain_mean": 6.0, "gain_stderr": None, "per_seed": {"0": 6.0}}
 
 
 def test_over_seeds_with_one_seed_changes_nothing_but_adds_the_seed() -> None:

@@ -75,10 +75,12 @@ def _pm_or_mean(mean: float, stderr: float | None) -> str:
 
 
 def unseen_table(summary: dict) -> list[str]:
-    """A Markdown table of every task's phases on its family's unseen task (``unseen_task`` in its summary entry):
-    the score of the phase, of its control and their difference, whose standard error treats the two as
-    independent (conservative when both ran on the same episodes); no ``±`` where a family reports no standard
-    error. Empty when no task has an unseen task."""
+    """A Markdown table of every task's phases on its family's unseen task (``unseen_task`` in its summary entry),
+    one row per score it reports (``score``, and e.g. KUKA's ``setup1_score``): the phase's, its control's and the
+    gain over the control. The gain is the summary's ``unseen_gain`` (seed by seed, ± standard error over training
+    seeds) where it has one with a standard error; otherwise the difference of the two means, marked ``unpaired``,
+    whose standard error treats them as independent. No ``±`` where a family reports no standard error. Empty when
+    no task has an unseen task."""
     lines = []
     for task, task_summary in summary.items():
         name = task_summary.get("unseen_task")
@@ -86,19 +88,29 @@ def unseen_table(summary: dict) -> list[str]:
             continue
         for phase, entry in phase_entries(task_summary):
             m, c = entry[name], entry.get("control", {}).get(name)
-            diff = ""
-            if c is not None:
-                stderrs = (m.get("score_stderr"), c.get("score_stderr"))
-                stderr = None if None in stderrs else float(np.hypot(*stderrs))
-                diff = _pm_or_mean(m["score_mean"] - c["score_mean"], stderr)
-            control = "" if c is None else _pm_or_mean(c["score_mean"], c.get("score_stderr"))
-            lines.append(
-                f"| {task} | {phase} | {name} | {_pm_or_mean(m['score_mean'], m.get('score_stderr'))} | {control} "
-                f"| {diff} |"
-            )
+            for key in (k for k in m if k.endswith("score_mean")):
+                measure = key.removesuffix("_mean")
+                stderr_key = f"{measure}_stderr"
+                control, gain = "", ""
+                if c is not None:
+                    control = _pm_or_mean(c[key], c.get(stderr_key))
+                    paired = entry.get("unseen_gain", {}).get(measure, {})
+                    if paired.get("gain_stderr") is not None:
+                        gain = _pm(paired["gain_mean"], paired["gain_stderr"])
+                    else:
+                        stderrs = (m.get(stderr_key), c.get(stderr_key))
+                        stderr = None if None in stderrs else float(np.hypot(*stderrs))
+                        gain = _pm_or_mean(m[key] - c[key], stderr) + " (unpaired)"
+                lines.append(
+                    f"| {task} | {phase} | {name} | {measure} | {_pm_or_mean(m[key], m.get(stderr_key))} | {control} "
+                    f"| {gain} |"
+                )
     if not lines:
         return []
-    header = ["| task | phase | unseen task | score | control | difference |", "|---|---|---|---|---|---|"]
+    header = [
+        "| task | phase | unseen task | measure | score | control | gain over control |",
+        "|---|---|---|---|---|---|---|",
+    ]
     return header + lines
 
 

@@ -9,6 +9,7 @@ import mlflow
 
 from adaptdiffuser.config import Params
 from adaptdiffuser.config.params import unseen_task_of
+from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.io import read_json, write_json
 from adaptdiffuser.layout import (
     SUMMARY,
@@ -44,10 +45,31 @@ def _per_seed(metrics: dict, control: dict | None) -> dict[str, dict]:
     return out
 
 
-def _unseen(root: Path, task: str, phase: int, unseen: str, control: bool) -> dict:
-    """A phase's (or its control's) metrics on the unseen task ``unseen``, mean over training seeds."""
+def _unseen_file(root: Path, task: str, phase: int, unseen: str, control: bool) -> dict:
+    """A phase's (or its control's) metrics file of the unseen task ``unseen``: the mean over training seeds under
+    ``unseen`` and each seed's under ``seeds``."""
     who = f"{task} phase {phase}" + ("'s control" if control else "")
-    return read_json(root / unseen_metrics_path(task, phase, control), f"{unseen} metrics of {who}")[unseen]
+    return read_json(root / unseen_metrics_path(task, phase, control), f"{unseen} metrics of {who}")
+
+
+def unseen_gain(phase: dict, control: dict, unseen: str) -> dict[str, dict]:
+    """The gain of a phase over its control on the unseen task, seed by seed (the same training seed's phase and
+    control): for every score of ``unseen`` (``score_mean`` and, e.g., KUKA's ``setup1_score_mean``), keyed by its
+    name without ``_mean``, ``{"gain_mean", "gain_stderr", "per_seed"}``; the standard error is over training seeds,
+    None with one seed."""
+    seeds = [seed for seed in phase.get("seeds", {}) if seed in control.get("seeds", {})]
+    gains = {}
+    for key in (k for k in phase[unseen] if k.endswith("score_mean")):
+        diffs = {s: phase["seeds"][s][unseen][key] - control["seeds"][s][unseen][key] for s in seeds}
+        if not diffs:
+            continue
+        values = list(diffs.values())
+        gains[key.removesuffix("_mean")] = {
+            "gain_mean": float(sum(values) / len(values)),
+            "gain_stderr": standard_error(values) if len(values) > 1 else None,
+            "per_seed": diffs,
+        }
+    return gains
 
 
 def task_phases(params: Params, task: str) -> list[int]:
@@ -57,10 +79,11 @@ def task_phases(params: Params, task: str) -> list[int]:
 
 def run_summarize(params: Params, root: Path) -> dict:
     """``{task: {"reference": {...}, "dataset": {...}?, "unseen_task"?, "phase_k": {score_mean, score_stderr, ...,
-    gain_mean?, gain_stderr?, <unseen task>?, "control"?, "discriminator"?, "per_seed"}}}``: each phase's
-    evaluation metrics; the task's reference constants (``reference``: R_min, R_max, and D4RL's where the family
+    gain_mean?, gain_stderr?, <unseen task>?, "unseen_gain"?, "control"?, "discriminator"?, "per_seed"}}}``: each
+    phase's evaluation metrics; the task's reference constants (``reference``: R_min, R_max, and D4RL's where the family
     gives them); for tasks of ``unseen_tasks``, the name of their family's unseen task (``gold_coin``,
-    ``pick_place``) and each phase's (and control's) metrics on it under that name; for evolution phases the
+    ``pick_place``) and each phase's (and control's) metrics on it under that name, with the gain over the control
+    on each of its scores, seed by seed, under ``unseen_gain`` (:func:`unseen_gain`); for evolution phases the
     discriminator counts, the equal-compute control's metrics and the gain of the phase over it; and the dataset's
     own score where the reference stage measured it.
 
@@ -80,7 +103,8 @@ def run_summarize(params: Params, root: Path) -> dict:
             metrics = read_json(root / phase_metrics_path(task, k), f"metrics of {task} phase {k} (run its evaluate)")
             phase = _without_seeds(metrics)
             if unseen is not None:
-                phase[unseen] = _unseen(root, task, k, unseen, control=False)
+                unseen_phase = _unseen_file(root, task, k, unseen, control=False)
+                phase[unseen] = unseen_phase[unseen]
             control = None
             if k > 0:
                 report = read_json(root / discriminator_metrics_path(task, k), f"discriminator report of phase {k}")
@@ -94,7 +118,9 @@ def run_summarize(params: Params, root: Path) -> dict:
                     key: value for key, value in _without_seeds(control).items() if not key.startswith("gain_")
                 }
                 if unseen is not None:
-                    phase["control"][unseen] = _unseen(root, task, k, unseen, control=True)
+                    unseen_control = _unseen_file(root, task, k, unseen, control=True)
+                    phase["control"][unseen] = unseen_control[unseen]
+                    phase["unseen_gain"] = unseen_gain(unseen_phase, unseen_control, unseen)
             phase["per_seed"] = _per_seed(metrics, control)
             entry[f"phase_{k}"] = phase
         summary[task] = entry
