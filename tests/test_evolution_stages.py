@@ -158,6 +158,7 @@ def test_a_phase_that_keeps_nothing_is_a_result_and_equals_its_control(
     assert summary["discriminator"]["kept"] == 0 and summary["gain_mean"] == 0.0
     assert summary["score_mean"] == summary["control"]["score_mean"]
     assert summary["gold_coin"] == summary["control"]["gold_coin"]  # the same model on the unseen task too
+    assert summary["unseen_gain"]["score"]["per_seed"] == {"0": 0.0}  # and no gain there, seed by seed
     run_report(copy)
     with (copy / "metrics" / "report" / TASK / "score_by_phase.csv").open() as f:
         rows = {row["phase"]: row for row in csv.DictReader(f)}
