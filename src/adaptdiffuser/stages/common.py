@@ -55,3 +55,9 @@ def phase_entries(task_summary: dict) -> list[tuple[int, dict]]:
     """``(k, entry)`` of every ``phase_k`` entry of one task's summary, in phase order."""
     phases = [(int(k.removeprefix("phase_")), entry) for k, entry in task_summary.items() if k.startswith("phase_")]
     return sorted(phases, key=lambda item: item[0])
+
+
+def unseen_scores(metrics: dict) -> list[str]:
+    """The scores an unseen task's metrics report (``score`` and, e.g., KUKA's ``setup1_score``): the names whose
+    ``<name>_mean`` they hold."""
+    return [key.removesuffix("_mean") for key in metrics if key.endswith("score_mean")]

@@ -11,7 +11,7 @@ import numpy as np
 from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.layout import SUMMARY, report_plot_path, score_table_path
 from adaptdiffuser.plots import save_score_by_phase
-from adaptdiffuser.stages.common import phase_entries
+from adaptdiffuser.stages.common import phase_entries, unseen_scores
 
 TABLE_COLUMNS = (
     "phase",
@@ -88,9 +88,8 @@ def unseen_table(summary: dict) -> list[str]:
             continue
         for phase, entry in phase_entries(task_summary):
             m, c = entry[name], entry.get("control", {}).get(name)
-            for key in (k for k in m if k.endswith("score_mean")):
-                measure = key.removesuffix("_mean")
-                stderr_key = f"{measure}_stderr"
+            for measure in unseen_scores(m):
+                key, stderr_key = f"{measure}_mean", f"{measure}_stderr"
                 control, gain = "", ""
                 if c is not None:
                     control = _pm_or_mean(c[key], c.get(stderr_key))

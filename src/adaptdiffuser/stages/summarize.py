@@ -18,7 +18,7 @@ from adaptdiffuser.layout import (
     reference_path,
     unseen_metrics_path,
 )
-from adaptdiffuser.stages.common import phase_entries
+from adaptdiffuser.stages.common import phase_entries, unseen_scores
 from adaptdiffuser.tooling.mlflow_logging import set_best_alias, stage_run
 
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept")
@@ -59,12 +59,13 @@ def unseen_gain(phase: dict, control: dict, unseen: str) -> dict[str, dict]:
     None with one seed."""
     seeds = [seed for seed in phase.get("seeds", {}) if seed in control.get("seeds", {})]
     gains = {}
-    for key in (k for k in phase[unseen] if k.endswith("score_mean")):
+    for score in unseen_scores(phase[unseen]):
+        key = f"{score}_mean"
         diffs = {s: phase["seeds"][s][unseen][key] - control["seeds"][s][unseen][key] for s in seeds}
         if not diffs:
             continue
         values = list(diffs.values())
-        gains[key.removesuffix("_mean")] = {
+        gains[score] = {
             "gain_mean": float(sum(values) / len(values)),
             "gain_stderr": standard_error(values) if len(values) > 1 else None,
             "per_seed": diffs,
