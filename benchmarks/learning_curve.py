@@ -22,7 +22,7 @@ output and resume files, so variants of one task and seed never share a resume s
 
     python benchmarks/learning_curve.py WORKSPACE --task maze2d-medium --steps 40000 --every 4000
         [--seed 7] [--episodes 30] [--training-seed 0] [--set pretrain.lr=0.001 ...] [--label NAME]
-        [--out curve.jsonl] [--keep-model DIR] [--device cpu] [--quiet]
+        [--out curve.jsonl] [--keep-model DIR (models at every point)] [--device cpu] [--quiet]
 
 WORKSPACE is a pipeline folder whose task has its dataset and reference (`dvc repro reference@<task>`).
 """
@@ -76,7 +76,8 @@ def main() -> None:
         type=Path,
         default=None,
         metavar="DIR",
-        help="save the trained model (a bundle, as pretrain writes) into DIR at the last step",
+        help="save the model (a bundle, as pretrain writes) into DIR/step<N> at every point, so a curve stopped "
+        "early still leaves its models",
     )
     parser.add_argument("--device", default="auto")
     parser.add_argument("--quiet", action="store_true", help="no progress bar while training")
@@ -155,12 +156,12 @@ def main() -> None:
             with atomic_path(out) as tmp:  # a kill mid-write leaves the last whole file
                 tmp.write_text("".join(json.dumps(p) + "\n" for p in points))
             print(json.dumps(point), flush=True)
+        if args.keep_model is not None:
+            save_bundle(args.keep_model / f"step{step}", bundle)
         clock["cpu_since"], clock["since"] = time.process_time(), time.perf_counter()
 
     train(bundle, dataset, cfg, device, resume, run_id, progress=not args.quiet, compiled=params.compile.training,
           on_checkpoint=evaluate)  # fmt: skip
-    if args.keep_model is not None:
-        save_bundle(args.keep_model, bundle)
     resume.unlink(missing_ok=True)
 
 
