@@ -341,21 +341,25 @@ def test_discriminator_executes_plans_and_rejects_what_the_simulator_cannot_do()
     assert MinReturnRule(1.5).select(np.array([1.0, 2.0, 4.0, 1.5]), np.ones(4)).tolist() == [2, 1]
 
 
-def test_following_execution_tracks_the_carried_block_not_the_joints() -> None:
-    """Executed by the blocks, a demonstration tracks; planned joints that go astray while a block is carried do not
-    matter there (the joints are not aimed at), but fail the plain execution; a carried block that jumps fails."""
+def test_following_execution_holds_the_plan_to_its_blocks_not_its_joints() -> None:
+    """Executed by the blocks, a demonstration tracks (its blocks within 5 cm of the plan's); planned joints that go
+    astray while a block is carried do not matter there (the joints are not aimed at), but fail the plain execution;
+    a carried block that jumps fails, and so does a block the plan moves without carrying it."""
     sim = KukaSimulator(SETTINGS, episode_steps=1000)
     demo = record_demonstration(sim, np.random.default_rng([9, 0]), SETTINGS)
     holding = np.flatnonzero(block_flags(demo).max(axis=1) > 0.5)
-    assert execute_plan(sim, demo, follow_blocks=True).max_error < 0.2
+    assert execute_plan(sim, demo, follow_blocks=True).max_error < 0.05
     astray = demo.copy()
     astray[holding, 0] += 2.0  # the base joint 2 rad off while carrying
-    assert execute_plan(sim, astray, follow_blocks=True).max_error < 0.2
+    assert execute_plan(sim, astray, follow_blocks=True).max_error < 0.05
     assert execute_plan(sim, astray).max_error > 1.02
     jump = demo.copy()
     carried = int(np.argmax(block_flags(demo[holding[5]])))
     jump[holding[5] :, block_position_columns(carried)] += [1.5, 0.0, 0.0]
-    assert execute_plan(sim, jump, follow_blocks=True).max_error > 1.02
+    assert execute_plan(sim, jump, follow_blocks=True).max_error > 1.0
+    teleport = np.repeat(demo[:1], 40, axis=0)  # block 1 onto block 0, the arm idle: the real block stays
+    teleport[1:, block_position_columns(1)] = demo[0, block_position_columns(0)] + [0.0, 0.0, 0.06]
+    assert execute_plan(sim, teleport, follow_blocks=True).max_error > 0.5
     sim.close()
 
 

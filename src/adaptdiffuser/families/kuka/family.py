@@ -131,8 +131,8 @@ class KukaFamily(Family):
         return generate_episodes(self.make_simulator, task, planner, cfg, alpha, seed, generator, progress)
 
     def discriminate(self, task, generated, cfg, phase, files, progress):
-        """Execute each episode's plans; reject drift of joints and flags, and states outside the stacking data's
-        range; select by blocks placed."""
+        """Execute each episode's plans; reject those that leave the plan (joints and flags, or blocks where the arm
+        follows them) and states outside the stacking data's range; select by blocks placed."""
         from adaptdiffuser.data.schema import read_trajectories
         from adaptdiffuser.families.kuka.evolution import judge_episodes
 
