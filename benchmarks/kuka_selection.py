@@ -65,10 +65,10 @@ def main() -> None:
     model = args.model or root / model_dir(name, cfg.previous, args.training_seed)
     planner = Planner(load_bundle(model, device), make_sampler(g.sampler, g.sampler_steps), device)
     seed = training_seed(derive_seed(g.seed, args.phase), args.training_seed)
+    judge_all = dataclasses.replace(cfg.discriminate, max_error=1e9)  # every episode tracks: thresholds come after
     generated, stats = family.generate(task, planner, None, g, params.alpha, seed, {}, progress=True)
 
     expert = read_trajectories(root / dataset_path(name), name).observation
-    judge_all = dataclasses.replace(cfg.discriminate, max_error=float("inf"))
     judgement = judge_episodes(family.make_simulator, task, generated, judge_all, expert, None, progress=True)
     tracked = judgement.trajectories
     errors = np.array([t.max_error for t in tracked])
