@@ -172,7 +172,9 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert params.alpha == 10.0  # guides pick-and-place, in generation and its evaluation
         kuka = params.resolve("kuka-stacking")
         assert kuka.family == "kuka" and kuka.diffusion.horizon == 128 and kuka.settings.replans == 3
-        assert params.phase_names == ["phase1", "phase2"] and params.phase(2).discriminate.max_error == 1.02
+        # the arm follows the blocks: tracking is the blocks' centres in metres (the reference's 1.02 is joints)
+        assert kuka.settings.planning.follow_blocks and params.phase(2).discriminate.max_error == 0.2
+        assert params.phase_names == ["phase1", "phase2"]
     if profile == "science-kuka":  # quick-kuka over three training seeds, nothing else changed
         science = yaml.safe_load(out.read_text())
         quick = yaml.safe_load(apply_profile("quick-kuka", PROFILES, tmp_path / "quick.yaml").read_text())
