@@ -1,8 +1,8 @@
 """What KUKA's discriminator would keep from one trained planner's generated pick-and-place episodes (printed and
 written, never asserted): the distribution of the episodes' tracking errors and blocks placed, and, for each
 candidate ``max_error``, how many pass tracking, the range check too, and how many the paper's rule (more than 1.5
-blocks placed) and the profile's rule keep. It chooses the threshold on generated episodes, never on evaluation
-episodes.
+blocks placed) and the profile's rule keep; how many executed episodes, and how many plans, stay within the range
+check. It chooses the threshold on generated episodes, never on evaluation episodes.
 
 The episodes are phase ``--phase``'s generation for training seed ``--training-seed``, exactly as the
 ``generate@phase<k>`` stage draws them (its seed, tasks, sampler and ``alpha``) from the model of the phase before,
@@ -76,6 +76,8 @@ def main() -> None:
     excess = task.settings.selection.max_range_excess
     low, high = expert.min(axis=0), expert.max(axis=0)
     in_range = np.array([within_range(t.observations, low, high, excess) for t in tracked])
+    plans = [generated.observation[e] for e in generated.episodes()]
+    planned_in_range = np.array([within_range(plan, low, high, excess) for plan in plans])
     paper = dataclasses.replace(cfg.discriminate, rule="paper")
     rows = []
     for threshold in (float(x) for x in args.thresholds.split(",")):
@@ -105,7 +107,8 @@ def main() -> None:
             f"q{int(q * 100)}": float(np.quantile(errors, q)) for q in (0.1, 0.25, 0.5, 0.75, 0.9)
         },
         "placed_counts": {str(k): int((placed == k).sum()) for k in range(5)},
-        "in_range": int(in_range.sum()),
+        "in_range": int(in_range.sum()),  # executed states within the range check
+        "planned_in_range": int(planned_in_range.sum()),  # the plans themselves
         "placed_mean_while_generating": stats["placed_mean_while_generating"],
         "thresholds": rows,
     }
