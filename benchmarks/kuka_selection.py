@@ -35,8 +35,8 @@ from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import atomic_path
 from adaptdiffuser.layout import dataset_path, model_dir
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed, training_seed
 from adaptdiffuser.stages.common import resolve_device
+from adaptdiffuser.stages.generate import generation_seed
 
 
 def main() -> None:
@@ -64,7 +64,7 @@ def main() -> None:
     device = resolve_device(args.device)
     model = args.model or root / model_dir(name, cfg.previous, args.training_seed)
     planner = Planner(load_bundle(model, device), make_sampler(g.sampler, g.sampler_steps), device)
-    seed = training_seed(derive_seed(g.seed, args.phase), args.training_seed)
+    seed = generation_seed(g, args.phase, args.training_seed)
     judge_all = dataclasses.replace(cfg.discriminate, max_error=1e9)  # every episode tracks: thresholds come after
     generated, stats = family.generate(task, planner, None, g, params.alpha, seed, {}, progress=True)
 

@@ -9,7 +9,7 @@ import mlflow
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import Params
+from adaptdiffuser.config import GenerateParams, Params
 from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.schema import write_trajectories
 from adaptdiffuser.diffusion.samplers import make_sampler
@@ -27,6 +27,11 @@ def run_generate(
     return {seed: generate_seed(params, task_name, root, phase, device, seed, progress) for seed in params.seeds}
 
 
+def generation_seed(cfg: GenerateParams, phase: int, seed: int) -> int:
+    """The seed phase ``phase``'s generation draws its tasks and noise from for training seed ``seed``."""
+    return training_seed(derive_seed(cfg.seed, phase), seed)
+
+
 def generate_seed(
     params: Params, task_name: str, root: Path, phase: int, device: torch.device, seed: int, progress: bool = True
 ) -> dict:
@@ -37,7 +42,7 @@ def generate_seed(
     g = cfg.generate
     source = model_dir(task.name, cfg.previous, seed)
     bundle = load_bundle(root / source, device)
-    generation_seed = training_seed(derive_seed(g.seed, phase), seed)
+    seed_of_generation = generation_seed(g, phase, seed)
     logged = {
         "generate": asdict(g),
         "alpha": params.alpha,
@@ -57,7 +62,7 @@ def generate_seed(
         planner = Planner(bundle, make_sampler(g.sampler, g.sampler_steps), device, params.compile.sampling)
         files = TaskFiles(root, task.name, source, seed)
         family = get_family(task.family)
-        traj, stats = family.generate(task, planner, files, g, params.alpha, generation_seed, generator, progress)
+        traj, stats = family.generate(task, planner, files, g, params.alpha, seed_of_generation, generator, progress)
         out = root / generated_path(task.name, phase, seed)
         out.parent.mkdir(parents=True, exist_ok=True)
         write_trajectories(out, traj)

@@ -32,6 +32,8 @@ from adaptdiffuser.families.kuka.tasks import block_positions
 from adaptdiffuser.seeding import derive_seed
 
 SETUP_COLUMN = "pick_place_setup"
+#: the columns the reference's tracking check compares: the joints and the suction flags
+JOINTS_AND_FLAGS = [*range(N_JOINTS), *FLAG_COLUMNS]
 #: the paper's KUKA rule: keep an episode that placed more than this many blocks
 PAPER_MIN_PLACED = 1.5
 
@@ -106,8 +108,7 @@ def tracking_error(executed: np.ndarray, planned: np.ndarray, follow_blocks: boo
     the plan is held to where it puts the blocks."""
     if follow_blocks:
         return float(np.linalg.norm(block_positions(executed) - block_positions(planned), axis=1).max())
-    aimed = list(range(N_JOINTS)) + list(FLAG_COLUMNS)
-    return float(np.linalg.norm(executed[aimed] - planned[aimed]))
+    return float(np.linalg.norm(executed[JOINTS_AND_FLAGS] - planned[JOINTS_AND_FLAGS]))
 
 
 def execute_plan(sim: KukaSimulator, planned: np.ndarray, follow_blocks: bool = False) -> TrackedTrajectory:
