@@ -7,4 +7,6 @@ bash scripts/setup.sh --dev
 source .venv/bin/activate
 ruff check src pipeline tests benchmarks
 lint-imports   # the import contracts of pyproject.toml (docs/architecture.md)
-pytest -q "$@"
+# One worker per core (pytest-xdist); a file's tests stay on one worker (tests/conftest.py groups them). Pass
+# `-n 0` to run in this process, e.g. `bash scripts/test.sh -n 0 tests/test_io.py`.
+pytest -q -n logical --dist loadgroup "$@"

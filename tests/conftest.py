@@ -3,6 +3,7 @@ after one `dvc repro` (built once per test session)."""
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -41,8 +42,32 @@ def no_mlflow_run_left_active() -> Iterator[None]:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    # Tiny networks run fastest on one thread; extra intra-op threads only contend with other work on the machine.
+    # Tiny networks run fastest on one thread; extra intra-op threads only contend with other work on the machine:
+    # the tests run in one pytest-xdist worker per core (scripts/test.sh), and the stages, `dvc` and sweep workers
+    # they start inherit one thread too.
     torch.set_num_threads(1)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def shares_a_module_fixture(item: pytest.Item) -> bool:
+    """Whether ``item`` uses a fixture built once per test file (an expensive one, as a rule)."""
+    info = getattr(item, "_fixtureinfo", None)
+    return info is not None and any(defs[-1].scope == "module" for defs in info.name2fixturedefs.values() if defs)
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Group the tests for pytest-xdist's ``--dist loadgroup`` (scripts/test.sh): every test on the smoke project on
+    one worker, so its `dvc repro` runs once, and first, the longest group; a test using a module fixture with the
+    rest of its file, so the fixture is built once; any other test wherever a worker is free."""
+    for item in items:
+        if item.get_closest_marker("xdist_group") is not None:
+            continue
+        if "smoke_repo" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.xdist_group("smoke_repo"))
+        elif shares_a_module_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(item.path.stem))
+    items.sort(key=lambda item: "smoke_repo" not in getattr(item, "fixturenames", ()))  # stable: else in order
 
 
 @pytest.fixture
