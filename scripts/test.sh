@@ -7,6 +7,6 @@ bash scripts/setup.sh --dev
 source .venv/bin/activate
 ruff check src pipeline tests benchmarks
 lint-imports   # the import contracts of pyproject.toml (docs/architecture.md)
-# One worker per core (pytest-xdist); a file's tests stay on one worker (tests/conftest.py groups them). Pass
-# `-n 0` to run in this process, e.g. `bash scripts/test.sh -n 0 tests/test_io.py`.
-pytest -q -n logical --dist loadgroup "$@"
+# One pytest-xdist worker per core, each test sent to whichever is free (its session and module fixtures are built
+# in each worker that needs them). Pass `-n 0` to run in this process: `bash scripts/test.sh -n 0 tests/test_io.py`.
+pytest -q -n logical "$@"

@@ -49,27 +49,6 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
-def shares_a_module_fixture(item: pytest.Item) -> bool:
-    """Whether ``item`` uses a fixture built once per test file (an expensive one, as a rule)."""
-    info = getattr(item, "_fixtureinfo", None)
-    return info is not None and any(defs[-1].scope == "module" for defs in info.name2fixturedefs.values() if defs)
-
-
-@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the groups
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Group the tests for pytest-xdist's ``--dist loadgroup`` (scripts/test.sh): every test on the smoke project on
-    one worker, so its `dvc repro` runs once, and first, the longest group; a test using a module fixture with the
-    rest of its file, so the fixture is built once; any other test wherever a worker is free."""
-    for item in items:
-        if item.get_closest_marker("xdist_group") is not None:
-            continue
-        if "smoke_repo" in getattr(item, "fixturenames", ()):
-            item.add_marker(pytest.mark.xdist_group("smoke_repo"))
-        elif shares_a_module_fixture(item):
-            item.add_marker(pytest.mark.xdist_group(item.path.stem))
-    items.sort(key=lambda item: "smoke_repo" not in getattr(item, "fixturenames", ()))  # stable: else in order
-
-
 @pytest.fixture
 def umaze() -> Maze2D:
     """A fresh U-Maze simulator with the default params."""
