@@ -1,5 +1,5 @@
 """Shared fixtures: a tiny model configuration, a real expert dataset collected in U-Maze, and the smoke project
-after one `dvc repro` (built once per test session)."""
+after one `dvc repro` (built once per test session, in each pytest-xdist worker that needs it)."""
 
 from __future__ import annotations
 
