@@ -16,15 +16,17 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-import yaml
-from trained_workspace import add_workspace_args, load_trained
+from trained_workspace import add_workspace_args, load_trained, parse_settings
 
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.families.kuka.execution import guided_blocks
-from adaptdiffuser.families.kuka.scene import N_BLOCKS
+from adaptdiffuser.families.kuka.scene import N_BLOCKS, N_JOINTS
 from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS, block_flags, block_positions, placed_count
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
+
+#: a block ending farther than this from the arm's base (xy, metres) was flung: the arm reaches about 1.2 m
+REACH = 1.2
 
 
 def main() -> None:
@@ -36,7 +38,7 @@ def main() -> None:
     parser.add_argument("--verbose", action="store_true")
     args = parser.parse_args()
     ws = load_trained(args, episodes_section="pick_place")
-    settings = {key: yaml.safe_load(value) for key, value in (kv.split("=", 1) for kv in args.set)}
+    settings = parse_settings(args.set)
     task = ws.task_with(settings)
     family = get_family("kuka")
     planner = Planner(ws.bundle, make_sampler(task.planner.sampler, task.planner.sampler_steps), ws.device)
@@ -51,6 +53,10 @@ def main() -> None:
             result, controller = family.pick_place_episodes(task, planner, alpha, setup, record=True)
             planned_held = cup_held = stretches = placed = 0
             by_block = np.zeros(N_BLOCKS, dtype=int)  # stretches whose plan held each block
+            flung = int(
+                sum((np.linalg.norm(block_positions(e[-1])[:, :2], axis=1) > REACH).sum() for e in result.executed)
+            )
+            moves = np.concatenate([np.abs(np.diff(e[:, :N_JOINTS], axis=0)).max(axis=1) for e in result.executed])
             for e, (executed, planned) in enumerate(zip(result.executed, controller.recorded, strict=True)):
                 rows = []
                 for k in range(p.replans):
@@ -67,7 +73,9 @@ def main() -> None:
                     print(f"  episode {e}: placed {placed_count(executed[-1])}; " + " | ".join(rows))
             print(f"alpha {alpha:g}, setup {setup}: placed {placed}/{N_BLOCKS * len(result.executed)} blocks; "
                   f"the guided block held by the plan in {planned_held}/{stretches} stretches, by the cup in "
-                  f"{cup_held}/{stretches}; stretches whose plan held block 0-3: {by_block.tolist()}",
+                  f"{cup_held}/{stretches}; stretches whose plan held block 0-3: {by_block.tolist()}; flung "
+                  f"{flung}/{N_BLOCKS * len(result.executed)} blocks; joint move per step, 99th percentile "
+                  f"{np.quantile(moves, 0.99):.3f} rad",
                   flush=True)  # fmt: skip
 
 

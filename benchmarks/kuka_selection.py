@@ -9,10 +9,11 @@ The episodes are phase ``--phase``'s generation for training seed ``--training-s
 unless ``--tasks`` asks for fewer; they are judged as ``discriminate@phase<k>`` judges them, with every threshold.
 
     python benchmarks/kuka_selection.py WORKSPACE [--phase 1] [--training-seed 0] [--tasks N]
-        [--thresholds 0.05,0.1,0.2,0.3,0.5,1.02] [--model DIR] [--out FILE.json]
+        [--thresholds 0.05,0.1,0.2,0.3,0.5,1.02] [--model DIR] [--set KEY=VALUE ...] [--out FILE.json]
 
 WORKSPACE is a pipeline folder of a KUKA profile with its stacking data and the model the phase starts from
-(`models/<task>/phase<k-1>/seed<s>`, or ``--model``, e.g. a ``learning_curve.py --keep-model`` folder).
+(`models/<task>/phase<k-1>/seed<s>`, or ``--model``, e.g. a ``learning_curve.py --keep-model`` folder); each
+``--set`` is a dotted key of the task (e.g. ``control.max_joint_step=0.1``).
 """
 
 from __future__ import annotations
@@ -24,9 +25,10 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from trained_workspace import parse_settings
 
 from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import params_from_dict
+from adaptdiffuser.config import params_from_dict, set_dotted
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evolution.discriminator import select
@@ -48,14 +50,19 @@ def main() -> None:
     parser.add_argument("--tasks", type=int, default=None, help="default: the phase's evolution.generate.tasks")
     parser.add_argument("--thresholds", default="0.05,0.1,0.2,0.3,0.5,1.02", help="candidate max_error values")
     parser.add_argument("--model", type=Path, default=None, help="default: the model the phase starts from")
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="dotted task keys")
     parser.add_argument("--out", type=Path, default=None, help="default: kuka_selection-phase<k>-seed<s>.json")
     parser.add_argument("--device", default="auto")
     args = parser.parse_args()
     root = args.workspace.resolve()
-    params = params_from_dict(yaml.safe_load((root / "params.yaml").read_text()))
-    name = args.task or params.evolve
+    raw = yaml.safe_load((root / "params.yaml").read_text())
+    name = args.task or raw.get("evolve")
     if name is None:
         parser.error("the workspace's params evolve no task: name one with --task")
+    settings = parse_settings(args.set)
+    for key, value in settings.items():
+        raw = set_dotted(raw, f"task.{name}.{key}", value)
+    params = params_from_dict(raw)
     task, cfg = params.resolve(name), params.phase(args.phase)
     family = get_family(task.family)
     if task.family != "kuka":
@@ -100,6 +107,7 @@ def main() -> None:
         "phase": args.phase,
         "training_seed": args.training_seed,
         "generation_seed": seed,
+        "settings": settings,
         "tasks": g.tasks,
         "follow_blocks": task.settings.planning.follow_blocks,
         "rule": cfg.discriminate.rule,

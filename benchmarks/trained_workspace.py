@@ -28,7 +28,16 @@ def add_workspace_args(parser: argparse.ArgumentParser, task: str | None = None,
     parser.add_argument("--episodes", type=int, default=episodes, help="default: the task's own number")
     parser.add_argument("--phase", type=int, default=0)
     parser.add_argument("--training-seed", type=int, default=0)
+    parser.add_argument("--model", type=Path, default=None, help="a model folder (default: the phase's, that seed's)")
     parser.add_argument("--device", default="auto")
+
+
+def parse_settings(pairs: list[str]) -> dict[str, Any]:
+    """``KEY=VALUE`` options (``--set``) as dotted keys with YAML values."""
+    bad = [pair for pair in pairs if "=" not in pair]
+    if bad:
+        raise SystemExit(f"--set takes KEY=VALUE, got {bad[0]!r}")
+    return {key: yaml.safe_load(value) for key, value in (pair.split("=", 1) for pair in pairs)}
 
 
 @dataclass
@@ -72,5 +81,5 @@ def load_trained(args: argparse.Namespace, episodes_section: str = "evaluate") -
     if args.episodes is not None:
         raw = set_dotted(raw, f"task.{name}.{episodes_section}.episodes", args.episodes)
     device = resolve_device(args.device)
-    model = model_dir(name, args.phase, args.training_seed)
+    model = args.model.resolve() if args.model is not None else model_dir(name, args.phase, args.training_seed)
     return TrainedWorkspace(root, raw, name, model, args.training_seed, device, load_bundle(root / model, device))

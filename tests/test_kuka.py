@@ -115,6 +115,25 @@ def settled_tower(sim: KukaSimulator, seed: int = 3) -> np.ndarray:
     return obs
 
 
+@pytest.mark.parametrize("max_joint_step", [None, 0.1])
+def test_a_joint_step_limit_slows_a_far_target_to_that_step(max_joint_step: float | None) -> None:
+    settings = KukaTaskParams(control={"max_joint_step": max_joint_step})
+    sim = KukaSimulator(settings)
+    try:
+        start = sim.reset(np.random.default_rng(0))[:N_JOINTS]
+        target = start + np.array([1.0, -0.8, 0.0, 0.0, 0.0, 0.0, 0.0])  # a jump no demonstration makes
+        moved = sim.step(np.concatenate([target, np.zeros(4)])).observation[:N_JOINTS] - start
+        if max_joint_step is None:
+            assert np.abs(moved).max() > 0.25  # the unlimited arm swings far in one plan step
+        else:
+            assert np.abs(moved).max() <= max_joint_step + 0.02
+            assert moved[0] > 0.05 and moved[1] < -0.05  # toward the target, each joint up to the limit
+    finally:
+        sim.close()
+    with pytest.raises(ValueError, match="max_joint_step"):
+        KukaTaskParams(control={"max_joint_step": 0.0})
+
+
 def test_covered_blocks_are_those_with_a_block_on_them() -> None:
     tower = tower_blocks(np.random.default_rng(0), (0.35, 0.6))[:, :3]
     assert covered_blocks(tower).tolist() == [True, True, True, False]

@@ -74,6 +74,7 @@ class KukaScene:
         position_gain: float = 0.3,
         suction_reach: float = 0.1,
         free_top_only: bool = False,
+        max_joint_step: float | None = None,
     ) -> None:
         with _silent_output():
             import pybullet as pb
@@ -87,6 +88,7 @@ class KukaScene:
         self.position_gain = position_gain
         self.suction_reach = suction_reach
         self.free_top_only = free_top_only
+        self.max_joint_step = max_joint_step
         self.constraints: list[int | None] = [None] * N_BLOCKS
 
     def build(self, joints: np.ndarray, blocks: np.ndarray) -> np.ndarray:
@@ -169,14 +171,18 @@ class KukaScene:
         c.changeConstraint(self.constraints[best], maxForce=500.0)
 
     def command(self, joint_targets: np.ndarray, flags: np.ndarray, substeps: int) -> np.ndarray:
-        """Position-control the joints toward ``joint_targets``, set the suction from ``flags``, simulate
-        ``substeps`` steps; return the observation."""
+        """Position-control the joints toward ``joint_targets`` (each at most ``max_joint_step`` from its current
+        angle, when set), set the suction from ``flags``, simulate ``substeps`` steps; return the observation."""
         self.set_suction(flags)
+        targets = np.asarray(joint_targets, dtype=np.float64)
+        if self.max_joint_step is not None:
+            current = np.array([s[0] for s in self.client.getJointStates(self.robot, range(N_JOINTS))])
+            targets = current + np.clip(targets - current, -self.max_joint_step, self.max_joint_step)
         self.client.setJointMotorControlArray(
             self.robot,
             list(range(N_JOINTS)),
             self.pb.POSITION_CONTROL,
-            targetPositions=np.asarray(joint_targets, dtype=np.float64).tolist(),
+            targetPositions=targets.tolist(),
             forces=[self.joint_force] * N_JOINTS,
             positionGains=[self.position_gain] * N_JOINTS,
         )

@@ -48,7 +48,7 @@ class KukaSimulator(Simulator):
         self.layout = layout
         self.episode_steps = episode_steps
         c = settings.control
-        self.scene = KukaScene(c.joint_force, c.position_gain, c.suction_reach, c.free_top_only)
+        self.scene = KukaScene(c.joint_force, c.position_gain, c.suction_reach, c.free_top_only, c.max_joint_step)
         self.count = placed_count if kind == "pick_place" else stacked_count
         self.obs: np.ndarray | None = None
 
