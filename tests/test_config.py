@@ -175,11 +175,18 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         # the arm follows the blocks: tracking is the blocks' centres in metres (the reference's 1.02 is joints)
         assert kuka.settings.planning.follow_blocks and params.phase(2).discriminate.max_error == 0.2
         assert params.phase_names == ["phase1", "phase2"]
-    if profile == "science-kuka":  # quick-kuka over three training seeds, nothing else changed
+    if profile == "science-kuka":  # quick-kuka over three training seeds, pretrained longer, fine-tuned as long
         science = yaml.safe_load(out.read_text())
         quick = yaml.safe_load(apply_profile("quick-kuka", PROFILES, tmp_path / "quick.yaml").read_text())
         (tmp_path / "quick.yaml").unlink()
-        assert params.seeds == (0, 1, 2) and science == quick | {"seeds": [0, 1, 2]}
+        quick_params = load_params(apply_profile("quick-kuka", PROFILES, tmp_path / "quick.yaml"))
+        (tmp_path / "quick.yaml").unlink()
+        for p, steps, fraction in ((params, 40000, 0.075), (quick_params, 24000, 0.125)):  # both fine-tune 3 000
+            assert p.resolve("kuka-stacking").pretrain.steps == steps and p.phase(1).finetune.steps_fraction == fraction
+        for raw in (science, quick):
+            del raw["seeds"], raw["evolution"]["finetune"]["steps_fraction"]
+            del raw["task"]["kuka-stacking"]["pretrain"]["steps"]
+        assert params.seeds == (0, 1, 2) and science == quick
     if profile == "paper-kuka":
         kuka = params.resolve("kuka-stacking")
         assert kuka.settings.collect.episodes == 10000 and kuka.model.dim == 128 and kuka.diffusion.n_steps == 1000
