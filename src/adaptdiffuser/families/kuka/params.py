@@ -56,7 +56,7 @@ class ControlSettings(BaseModel):
     free_top_only: bool = False
     #: the most a joint's target may move from its current angle in one plan step (radians; None: no limit). The
     #: real iiwa turns its joints at 1.3-2.4 rad/s; 0.1 rad a step is 2.4 rad/s at 10 substeps. Without it a plan
-    #: far from the data swings the arm at up to 20 rad/s and flings the blocks it meets (docs/kuka.md)
+    #: far from the data swings the arm at over 20 rad/s and flings the blocks it meets (docs/kuka.md)
     max_joint_step: float | None = Field(None, gt=0)
 
 
