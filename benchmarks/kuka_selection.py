@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from trained_workspace import parse_settings
+from trained_workspace import parse_settings, with_task_settings
 
 from adaptdiffuser.checkpoint import load_bundle
-from adaptdiffuser.config import params_from_dict, set_dotted
+from adaptdiffuser.config import params_from_dict
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evolution.discriminator import select
@@ -60,9 +60,7 @@ def main() -> None:
     if name is None:
         parser.error("the workspace's params evolve no task: name one with --task")
     settings = parse_settings(args.set)
-    for key, value in settings.items():
-        raw = set_dotted(raw, f"task.{name}.{key}", value)
-    params = params_from_dict(raw)
+    params = params_from_dict(with_task_settings(raw, name, settings))
     task, cfg = params.resolve(name), params.phase(args.phase)
     family = get_family(task.family)
     if task.family != "kuka":

@@ -40,6 +40,13 @@ def parse_settings(pairs: list[str]) -> dict[str, Any]:
     return {key: yaml.safe_load(value) for key, value in (pair.split("=", 1) for pair in pairs)}
 
 
+def with_task_settings(raw: dict[str, Any], task: str, settings: dict[str, Any]) -> dict[str, Any]:
+    """Raw params ``raw`` with each dotted ``task.<task>.<key>`` of ``settings`` set to its value."""
+    for key, value in settings.items():
+        raw = set_dotted(raw, f"task.{task}.{key}", value)
+    return raw
+
+
 @dataclass
 class TrainedWorkspace:
     """A workspace's params (episodes moved to ``--seed``), the chosen task and its trained model."""
@@ -59,10 +66,7 @@ class TrainedWorkspace:
 
     def task_with(self, settings: dict[str, Any]) -> TaskParams:
         """The task with each dotted ``task.<name>.<key>`` of ``settings`` set to its value."""
-        raw = self.raw
-        for key, value in settings.items():
-            raw = set_dotted(raw, f"task.{self.name}.{key}", value)
-        return params_from_dict(raw).resolve(self.name)
+        return params_from_dict(with_task_settings(self.raw, self.name, settings)).resolve(self.name)
 
     def files(self) -> TaskFiles:
         return TaskFiles(self.root, self.name, self.model, self.training_seed)

@@ -177,10 +177,9 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert params.phase_names == ["phase1", "phase2"]
     if profile == "science-kuka":  # quick-kuka over three training seeds, pretrained longer, fine-tuned as long
         science = yaml.safe_load(out.read_text())
-        quick = yaml.safe_load(apply_profile("quick-kuka", PROFILES, tmp_path / "quick.yaml").read_text())
-        (tmp_path / "quick.yaml").unlink()
-        quick_params = load_params(apply_profile("quick-kuka", PROFILES, tmp_path / "quick.yaml"))
-        (tmp_path / "quick.yaml").unlink()
+        quick_path = apply_profile("quick-kuka", PROFILES, tmp_path / "quick.yaml")
+        quick, quick_params = yaml.safe_load(quick_path.read_text()), load_params(quick_path)
+        quick_path.unlink()
         for p, steps, fraction in ((params, 40000, 0.075), (quick_params, 24000, 0.125)):  # both fine-tune 3 000
             assert p.resolve("kuka-stacking").pretrain.steps == steps and p.phase(1).finetune.steps_fraction == fraction
         for raw in (science, quick):
