@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -295,6 +299,111 @@ def test_a_killed_cosine_run_resumes_on_its_schedule(tmp_path: Path, dataset: Wi
     resumed = new_bundle(9)
     train(resumed, dataset, cfg, CPU, resume, "cosine", progress=False)
     assert_same_weights(weights(resumed), weights(straight))
+
+
+@pytest.fixture
+def former_sigterm():
+    """A Python SIGTERM handler raising :class:`Interrupted`, standing for the process's own (put back afterwards)."""
+
+    def interrupted(signum: int, frame: object) -> None:
+        raise Interrupted
+
+    former = signal.signal(signal.SIGTERM, interrupted)
+    yield interrupted
+    signal.signal(signal.SIGTERM, former)
+
+
+def test_a_stop_signal_waits_for_the_end_of_the_step_and_its_resume_state(
+    tmp_path: Path, dataset: WindowDataset, new_bundle, former_sigterm
+) -> None:
+    """SIGTERM at step 25 (between the checkpoints of 20 and 30): the step ends, its resume state is written, then
+    the process's own handler runs; resumed from 25, the run ends with the weights of a straight one."""
+    straight = new_bundle(0)
+    train(straight, dataset, CFG, CPU, progress=False)
+
+    def terminate_at_25(step: int, loss: float) -> None:
+        if step == 25:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    resume = tmp_path / "resume.pt"
+    with pytest.raises(Interrupted):
+        train(new_bundle(0), dataset, CFG, CPU, resume, "run", on_log=terminate_at_25, progress=False)
+    assert torch.load(resume, weights_only=False)["step"] == 25  # not 20, the last checkpoint
+    assert signal.getsignal(signal.SIGTERM) is former_sigterm  # the process's own handler is back
+
+    logged: list[int] = []
+    resumed = new_bundle(7)
+    train(resumed, dataset, CFG, CPU, resume, "run", on_log=lambda s, _: logged.append(s), progress=False)
+    assert logged == [30]
+    assert_same_weights(weights(resumed), weights(straight))
+
+
+def test_a_second_stop_signal_acts_at_once_and_without_a_resume_state_none_waits(
+    tmp_path: Path, dataset: WindowDataset, new_bundle, former_sigterm
+) -> None:
+    def terminate_twice_at_25(step: int, loss: float) -> None:
+        if step == 25:
+            os.kill(os.getpid(), signal.SIGTERM)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    resume = tmp_path / "resume.pt"
+    with pytest.raises(Interrupted):
+        train(new_bundle(0), dataset, CFG, CPU, resume, "run", on_log=terminate_twice_at_25, progress=False)
+    assert torch.load(resume, weights_only=False)["step"] == 20  # stopped inside step 25, before its state
+
+    logged: list[int] = []
+
+    def terminate_at_10(step: int, loss: float) -> None:
+        logged.append(step)
+        if step == 10:
+            os.kill(os.getpid(), signal.SIGTERM)
+            assert False, "the signal was held without a resume state"  # noqa: B011  (never reached)
+
+    with pytest.raises(Interrupted):
+        train(new_bundle(0), dataset, CFG, CPU, on_log=terminate_at_10, progress=False)
+    assert logged == [5, 10]
+
+
+CHILD = """import sys
+from pathlib import Path
+
+import torch
+
+from adaptdiffuser.config import PretrainParams
+from adaptdiffuser.training import train
+
+bundle, dataset = torch.load(sys.argv[1], weights_only=False)
+cfg = PretrainParams(steps=100_000, batch_size=4, lr=1e-3, log_every=5, checkpoint_every=100_000, seed=3)
+train(bundle, dataset, cfg, torch.device("cpu"), Path(sys.argv[2]), "run", progress=False,
+      on_log=lambda step, loss: print(f"step {step}", flush=True))
+"""
+
+
+def test_a_training_process_stopped_by_sigterm_ends_by_it_with_its_resume_state_written(
+    tmp_path: Path, dataset: WindowDataset, new_bundle
+) -> None:
+    """A real process (as a stage under `long_run.sh stop`): no checkpoint falls due in its 100 000 steps, yet after
+    SIGTERM its resume state holds the step it stopped at, and it ends by the signal, as it would have at once."""
+    inputs, resume = tmp_path / "inputs.pt", tmp_path / "resume.pt"
+    torch.save((new_bundle(0), dataset), inputs)
+    (tmp_path / "child.py").write_text(CHILD)
+    env = os.environ | {"OMP_NUM_THREADS": "1"}
+    child = subprocess.Popen(
+        [sys.executable, str(tmp_path / "child.py"), str(inputs), str(resume)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+    )  # fmt: skip
+    assert child.stdout is not None
+    lines = []
+    for line in child.stdout:  # training for some steps
+        lines.append(line)
+        if line.strip() == "step 20":
+            break
+    child.send_signal(signal.SIGTERM)
+    rest, _ = child.communicate(timeout=120)
+    assert child.returncode == -signal.SIGTERM, "".join(lines) + rest
+    stopped = torch.load(resume, weights_only=False)["step"]
+    assert 20 <= stopped < 100_000
+    assert f"SIGTERM: stopping after step {stopped}, resume state {resume}" in rest
 
 
 def test_fingerprint() -> None:

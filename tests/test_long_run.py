@@ -164,7 +164,10 @@ def test_science_locomotion_evolves_each_task_on_one_phase0(tmp_path: Path) -> N
 def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
     repo = tmp_path / "repo"
     repo.mkdir()
-    (repo / "work.sh").write_text("sleep 600 &\nwait\n")  # a run with a child process, as DVC starts its stages
+    # a run with a child process, as DVC starts its stages, that takes a while to go when told to (as a training
+    # stage ends its step and writes its resume state): stop waits for it
+    child = "trap 'sleep 2; echo saved > saved.txt; exit 143' TERM; while true; do sleep 0.1; done"
+    (repo / "work.sh").write_text(f"( {child} ) &\nwait\n")
     for cmd in (["git", "init", "-q"], ["git", "add", "work.sh"]):
         run_tool(cmd, repo)
     run_tool(["git", "-c", "user.email=t@example.com", "-c", "user.name=t", "commit", "-qm", "work"], repo)
@@ -180,6 +183,7 @@ def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
     out = run_tool(["bash", SCRIPT, "stop", str(folder)], tmp_path)
     assert f"stopped {folder}" in out and "long_run.sh resume" in out
     assert _group(pid) == []  # the script and its child are gone
+    assert (folder / "saved.txt").read_text() == "saved\n"  # the child was let finish
     again = subprocess.run(["bash", SCRIPT, "stop", str(folder)], capture_output=True, text=True)
     assert again.returncode == 2 and "is not running" in again.stderr
 

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+import signal
+
 import numpy as np
 import pytest
 import torch
@@ -264,3 +267,40 @@ def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
         fresh(0), diffusion, ds, settings, CPU, False, lambda s, _: logged.append(s), resume_path=resume, run_id="b"
     )
     assert logged == [5, 10, 15, 20, 25, 30] and other == straight  # from scratch: the state was another run's
+
+
+def test_a_value_training_stopped_by_sigterm_writes_the_step_it_stopped_at(tmp_path) -> None:
+    """As the diffusion model's loop (tests/test_checkpoint.py): SIGTERM at step 25, between the states of 24 and
+    30, ends step 25 and writes its state before the process's own handler runs; resumed, the weights are the
+    straight run's."""
+    traj = _first_state_value_data(0, n=64)
+    ds = ValueWindowDataset(traj, 8, GaussianNormalizer.fit(joint_array(traj)), discount=0.99, terminal_penalty=0.0)
+    diffusion = tiny_diffusion(8)
+    settings = ValueSettings(steps=30, batch_size=8, lr=1e-3, seed=3, log_every=5, checkpoint_every=8)
+
+    def fresh(seed: int) -> ValueNetwork:
+        torch.manual_seed(seed)
+        return ValueNetwork(OBS + ACT, 8, dim=8, dim_mults=(1, 2))
+
+    straight_net = fresh(0)
+    straight = train_value(straight_net, diffusion, ds, settings, CPU, progress=False)
+
+    def interrupted(signum: int, frame: object) -> None:
+        raise Interrupted
+
+    def terminate_at_25(step: int, loss: float) -> None:
+        if step == 25:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    resume = tmp_path / "value-resume.pt"
+    former = signal.signal(signal.SIGTERM, interrupted)
+    try:
+        with pytest.raises(Interrupted):
+            train_value(fresh(0), diffusion, ds, settings, CPU, False, terminate_at_25, resume_path=resume, run_id="a")
+    finally:
+        signal.signal(signal.SIGTERM, former)
+    assert torch.load(resume, weights_only=False)["step"] == 25
+    resumed_net = fresh(123)
+    assert train_value(resumed_net, diffusion, ds, settings, CPU, False, resume_path=resume, run_id="a") == straight
+    for a, b in zip(resumed_net.state_dict().values(), straight_net.state_dict().values(), strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)

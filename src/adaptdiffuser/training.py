@@ -13,6 +13,7 @@ import copy
 import hashlib
 import json
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,7 @@ from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
 from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.io import atomic_path
 from adaptdiffuser.models.compiled import compile_network
+from adaptdiffuser.stop_signals import DeferredStop
 
 LogFn = Callable[[int, float], None]
 OPTIMIZER_MODES = ("restart", "carry")
@@ -102,6 +104,14 @@ def save_resume_state(path: Path, state: dict[str, Any]) -> None:
     """Write a resume state atomically (a run killed while writing keeps the previous one)."""
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
+
+
+def stop_after_step(stop: DeferredStop, step: int, resume_path: Path) -> None:
+    """With a stop signal held, the step's resume state just written: say so and let the signal take its course."""
+    if stop.received is not None:
+        tqdm.write(f"{stop.name}: stopping after step {step}, resume state {resume_path}")
+        sys.stdout.flush()  # the signal may end the process before Python would
+        stop.deliver()
 
 
 class LossLog:
@@ -192,7 +202,9 @@ def train(
     step's resume state is written (a run killed inside it redoes the step): a learning curve evaluates the EMA
     there (it must not touch the raw weights). The resume state is written at the end too, so that a stage killed
     after this training (on a later seed, say) finds it finished instead of training it again; the caller removes
-    it once everything it trains is saved. Resumed from a finished state, nothing is trained and neither
+    it once everything it trains is saved. With ``resume_path``, a SIGTERM or SIGINT waits for the end of the
+    step, whose resume state is then written before the signal takes its course (``stop_signals``): a stopped run
+    loses no step. Resumed from a finished state, nothing is trained and neither
     ``on_log`` nor ``on_checkpoint`` is called. Returns the
     logged ``(step, loss)`` pairs of the whole run (including those before a resume).
     """
@@ -220,30 +232,34 @@ def train(
     log.bar = bar = tqdm(
         range(start, cfg.steps), initial=start, total=cfg.steps, desc="train", disable=not progress, mininterval=2.0
     )
-    for step in bar:
-        for _ in range(cfg.grad_accum):
-            x0 = torch.from_numpy(dataset.sample(cfg.batch_size, rng)).to(device)
-            cond = training_conditions(conditioning, x0, act_dim)
-            loss = model.loss(x0, cond, generator=gen) / cfg.grad_accum
-            loss.backward()
-            log.add(loss.item() * cfg.grad_accum)
-        if scheduled:
-            for group in optimizer.param_groups:
-                group["lr"] = cfg.lr * lr_factor(cfg, step)
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        done = step + 1
-        if done % cfg.ema_every == 0:
-            if done < cfg.ema_start:
-                _copy_weights(ema.model, model.model)
-            else:
-                _update_ema(ema.model, model.model, cfg.ema_decay)
-        log.step_done(done)
-        if on_checkpoint is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
-            on_checkpoint(done)
-        if resume_path is not None and (done % cfg.checkpoint_every == 0 or done == cfg.steps):
-            state = loop_state(run_id, done, optimizer, rng, gen, log)
-            save_resume_state(resume_path, state | {"model": model.model.state_dict(), "ema": ema.model.state_dict()})
+    with DeferredStop(enabled=resume_path is not None) as stop:
+        for step in bar:
+            for _ in range(cfg.grad_accum):
+                x0 = torch.from_numpy(dataset.sample(cfg.batch_size, rng)).to(device)
+                cond = training_conditions(conditioning, x0, act_dim)
+                loss = model.loss(x0, cond, generator=gen) / cfg.grad_accum
+                loss.backward()
+                log.add(loss.item() * cfg.grad_accum)
+            if scheduled:
+                for group in optimizer.param_groups:
+                    group["lr"] = cfg.lr * lr_factor(cfg, step)
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+            done = step + 1
+            if done % cfg.ema_every == 0:
+                if done < cfg.ema_start:
+                    _copy_weights(ema.model, model.model)
+                else:
+                    _update_ema(ema.model, model.model, cfg.ema_decay)
+            log.step_done(done)
+            checkpoint = done % cfg.checkpoint_every == 0 or done == cfg.steps
+            if on_checkpoint is not None and checkpoint:
+                on_checkpoint(done)
+            if resume_path is not None and (checkpoint or stop.received is not None):
+                state = loop_state(run_id, done, optimizer, rng, gen, log)
+                weights = {"model": model.model.state_dict(), "ema": ema.model.state_dict()}
+                save_resume_state(resume_path, state | weights)
+                stop_after_step(stop, done, resume_path)
     model.eval()
     ema.eval()
     bundle.optimizer = optimizer_record(optimizer)

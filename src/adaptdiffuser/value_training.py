@@ -23,6 +23,7 @@ from adaptdiffuser.diffusion.conditions import apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.io import atomic_dir, read_json, write_json
 from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.stop_signals import DeferredStop
 from adaptdiffuser.training import (
     LogFn,
     LossLog,
@@ -30,6 +31,7 @@ from adaptdiffuser.training import (
     loop_state,
     restore_loop_state,
     save_resume_state,
+    stop_after_step,
 )
 
 VALUE_FILES = ("value.pt", "config.json")
@@ -93,20 +95,23 @@ def train_value(
         range(start, settings.steps), initial=start, total=settings.steps, desc="value", disable=not progress,
         mininterval=2.0,
     )  # fmt: skip
-    for step in bar:
-        windows, values = dataset.sample(settings.batch_size, rng)
-        x0 = torch.from_numpy(windows).to(device)
-        target = torch.from_numpy(values).to(device)
-        loss = value_loss(value_net, diffusion, x0, target, generator=gen)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        log.add(loss.item())
-        done = step + 1
-        log.step_done(done)
-        if resume_path is not None and (done % settings.checkpoint_every == 0 or done == settings.steps):
-            state = loop_state(run_id, done, optimizer, rng, gen, log)
-            save_resume_state(resume_path, state | {"model": value_net.state_dict()})
+    with DeferredStop(enabled=resume_path is not None) as stop:
+        for step in bar:
+            windows, values = dataset.sample(settings.batch_size, rng)
+            x0 = torch.from_numpy(windows).to(device)
+            target = torch.from_numpy(values).to(device)
+            loss = value_loss(value_net, diffusion, x0, target, generator=gen)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            log.add(loss.item())
+            done = step + 1
+            log.step_done(done)
+            checkpoint = done % settings.checkpoint_every == 0 or done == settings.steps
+            if resume_path is not None and (checkpoint or stop.received is not None):
+                state = loop_state(run_id, done, optimizer, rng, gen, log)
+                save_resume_state(resume_path, state | {"model": value_net.state_dict()})
+                stop_after_step(stop, done, resume_path)
     value_net.eval()
     return log.history
 
