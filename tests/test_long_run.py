@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import torch
 import yaml
 from smoke_project import REPO, make_smoke_project, run_tool
 
@@ -43,14 +46,19 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     venv = ["--venv", sys.prefix]
     out = run_tool(["bash", SCRIPT, "start", str(folder), "--from", str(project), "--commit", head, *venv], tmp_path)
     assert f"pinned {folder} at {head}" in out
+    seed1 = folder / "models" / ".resume" / f"{MAZE}-phase0-seed1.pt"
+    # stop the run once the second seed's pretraining has written a whole resume state (not only its hidden
+    # temporary file; the first seed's training is finished by then): SIGTERM to its process group, and the stage
+    # ends its step and writes its state there before it goes
+    _wait_for(seed1.exists, folder)
+    run_tool(["bash", SCRIPT, "stop", str(folder)], tmp_path)
+    (stopped,) = map(int, re.findall(r"SIGTERM: stopping after step (\d+),", (folder / "long_run.log").read_text()))
+    status = run_tool(["bash", SCRIPT, "status", str(folder)], tmp_path)
+    assert f"resume state: {MAZE}-phase0-seed1.pt (step {stopped})" in status
+    run_tool(["bash", SCRIPT, "resume", str(folder)], tmp_path)
     pid = int((folder / "long_run.pid").read_text())
-    deadline = time.monotonic() + 600
-    resume = folder / "models" / ".resume"
-    # kill the run once the second seed's pretraining has written a whole resume state (not only its hidden
-    # temporary file): the first seed's training is finished by then
-    while not (resume / f"{MAZE}-phase0-seed1.pt").exists():
-        assert time.monotonic() < deadline, (folder / "long_run.log").read_text()
-        time.sleep(0.2)
+    # then killed outright (SIGKILL, as when the machine goes) once the resumed training has passed a checkpoint
+    _wait_for(lambda: torch.load(seed1, weights_only=False)["step"] > stopped, folder)
     os.killpg(pid, signal.SIGKILL)
     while subprocess.run(["kill", "-0", str(pid)], capture_output=True).returncode == 0:
         time.sleep(0.1)
@@ -69,7 +77,7 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     run_tool(["bash", SCRIPT, "resume", str(folder), "--foreground"], tmp_path)
     log = (folder / "long_run.log").read_text()
     # the first seed is not trained again, the second goes on from its checkpoint, not from step 0
-    assert "resuming training from step 600" in log
+    assert "resuming training from step 600" in log and f"resuming training from step {stopped} " in log
     assert any(f"resuming training from step {step} " in log for step in range(100, 600, 100))
     status = run_tool(["bash", SCRIPT, "status", str(folder)], tmp_path)
     assert "0 left" in status and "resume state:" not in status
@@ -88,6 +96,14 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
         assert (saved / file).read_bytes() == (folder / file).read_bytes()
         committed = subprocess.run(["git", "show", f"{head}:{file}"], cwd=folder, capture_output=True)
         assert committed.returncode != 0 or committed.stdout != (folder / file).read_bytes()
+
+
+def _wait_for(condition: Callable[[], bool], folder: Path, timeout_s: float = 600.0) -> None:
+    """Poll ``condition`` until it holds; fail with the run's log after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, (folder / "long_run.log").read_text()
+        time.sleep(0.2)
 
 
 def _maze_phases_only(path: Path) -> None:
