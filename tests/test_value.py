@@ -219,21 +219,25 @@ class Interrupted(Exception):
     """Stands for a process killed during value training."""
 
 
+def _resumable_value_training() -> tuple[ValueWindowDataset, GaussianDiffusion, ValueSettings]:
+    """Windows, schedule and settings of a 30-step value training with states every 8 steps, a loss every 5."""
+    traj = _first_state_value_data(0, n=64)
+    ds = ValueWindowDataset(traj, 8, GaussianNormalizer.fit(joint_array(traj)), discount=0.99, terminal_penalty=0.0)
+    settings = ValueSettings(steps=30, batch_size=8, lr=1e-3, seed=3, log_every=5, checkpoint_every=8)
+    return ds, tiny_diffusion(8), settings
+
+
+def _value_net(seed: int) -> ValueNetwork:
+    torch.manual_seed(seed)
+    return ValueNetwork(OBS + ACT, 8, dim=8, dim_mults=(1, 2))
+
+
 def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
     """Killed at step 25 with states every 8 steps and a loss logged every 5, a new process (other initial weights)
     goes on from step 24 and ends with the straight run's weights and history (the mean at 25 over steps 21-25); a
     finished state trains nothing; another run's state is ignored."""
-    traj = _first_state_value_data(0, n=64)
-    normalizer = GaussianNormalizer.fit(joint_array(traj))
-    ds = ValueWindowDataset(traj, 8, normalizer, discount=0.99, terminal_penalty=0.0)
-    diffusion = tiny_diffusion(8)
-    settings = ValueSettings(steps=30, batch_size=8, lr=1e-3, seed=3, log_every=5, checkpoint_every=8)
-
-    def fresh(seed: int) -> ValueNetwork:
-        torch.manual_seed(seed)
-        return ValueNetwork(OBS + ACT, 8, dim=8, dim_mults=(1, 2))
-
-    straight_net = fresh(0)
+    ds, diffusion, settings = _resumable_value_training()
+    straight_net = _value_net(0)
     straight = train_value(straight_net, diffusion, ds, settings, CPU, progress=False)
     resume = tmp_path / "value-resume.pt"
 
@@ -242,10 +246,10 @@ def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
             raise Interrupted
 
     with pytest.raises(Interrupted):
-        train_value(fresh(0), diffusion, ds, settings, CPU, False, kill_at_25, resume_path=resume, run_id="a")
+        train_value(_value_net(0), diffusion, ds, settings, CPU, False, kill_at_25, resume_path=resume, run_id="a")
     assert torch.load(resume, weights_only=False)["step"] == 24
     logged: list[int] = []
-    resumed_net = fresh(123)
+    resumed_net = _value_net(123)
     resumed = train_value(
         resumed_net, diffusion, ds, settings, CPU, False, lambda s, _: logged.append(s), resume_path=resume, run_id="a"
     )
@@ -255,7 +259,7 @@ def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
     assert torch.load(resume, weights_only=False)["step"] == 30  # the end is kept for a stage killed later
 
     logged.clear()
-    finished_net = fresh(7)
+    finished_net = _value_net(7)
     again = train_value(
         finished_net, diffusion, ds, settings, CPU, False, lambda s, _: logged.append(s), resume_path=resume, run_id="a"
     )
@@ -264,7 +268,15 @@ def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
     other = train_value(
-        fresh(0), diffusion, ds, settings, CPU, False, lambda s, _: logged.append(s), resume_path=resume, run_id="b"
+        _value_net(0),
+        diffusion,
+        ds,
+        settings,
+        CPU,
+        False,
+        lambda s, _: logged.append(s),
+        resume_path=resume,
+        run_id="b",
     )
     assert logged == [5, 10, 15, 20, 25, 30] and other == straight  # from scratch: the state was another run's
 
@@ -273,16 +285,8 @@ def test_a_value_training_stopped_by_sigterm_writes_the_step_it_stopped_at(tmp_p
     """As the diffusion model's loop (tests/test_checkpoint.py): SIGTERM at step 25, between the states of 24 and
     30, ends step 25 and writes its state before the process's own handler runs; resumed, the weights are the
     straight run's."""
-    traj = _first_state_value_data(0, n=64)
-    ds = ValueWindowDataset(traj, 8, GaussianNormalizer.fit(joint_array(traj)), discount=0.99, terminal_penalty=0.0)
-    diffusion = tiny_diffusion(8)
-    settings = ValueSettings(steps=30, batch_size=8, lr=1e-3, seed=3, log_every=5, checkpoint_every=8)
-
-    def fresh(seed: int) -> ValueNetwork:
-        torch.manual_seed(seed)
-        return ValueNetwork(OBS + ACT, 8, dim=8, dim_mults=(1, 2))
-
-    straight_net = fresh(0)
+    ds, diffusion, settings = _resumable_value_training()
+    straight_net = _value_net(0)
     straight = train_value(straight_net, diffusion, ds, settings, CPU, progress=False)
 
     def interrupted(signum: int, frame: object) -> None:
@@ -296,11 +300,13 @@ def test_a_value_training_stopped_by_sigterm_writes_the_step_it_stopped_at(tmp_p
     former = signal.signal(signal.SIGTERM, interrupted)
     try:
         with pytest.raises(Interrupted):
-            train_value(fresh(0), diffusion, ds, settings, CPU, False, terminate_at_25, resume_path=resume, run_id="a")
+            train_value(
+                _value_net(0), diffusion, ds, settings, CPU, False, terminate_at_25, resume_path=resume, run_id="a"
+            )
     finally:
         signal.signal(signal.SIGTERM, former)
     assert torch.load(resume, weights_only=False)["step"] == 25
-    resumed_net = fresh(123)
+    resumed_net = _value_net(123)
     assert train_value(resumed_net, diffusion, ds, settings, CPU, False, resume_path=resume, run_id="a") == straight
     for a, b in zip(resumed_net.state_dict().values(), straight_net.state_dict().values(), strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
