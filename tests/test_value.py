@@ -268,16 +268,9 @@ def test_killed_value_training_goes_on_from_its_resume_state(tmp_path) -> None:
         torch.testing.assert_close(a, b, rtol=0, atol=0)
 
     other = train_value(
-        _value_net(0),
-        diffusion,
-        ds,
-        settings,
-        CPU,
-        False,
-        lambda s, _: logged.append(s),
-        resume_path=resume,
-        run_id="b",
-    )
+        _value_net(0), diffusion, ds, settings, CPU, False, lambda s, _: logged.append(s), resume_path=resume,
+        run_id="b"
+    )  # fmt: skip
     assert logged == [5, 10, 15, 20, 25, 30] and other == straight  # from scratch: the state was another run's
 
 
