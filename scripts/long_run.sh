@@ -18,9 +18,9 @@
 #       stop the run and everything it started (to free the CPU for other work); `resume` continues it, training
 #       from its last checkpoint
 #   bash scripts/long_run.sh save FOLDER [--into DIR]
-#       copy what the run has measured so far (the files of its metrics/ that differ from the pinned commit's, its
-#       params.yaml and dvc.lock, and the commit) into DIR (default: metrics/runs/<FOLDER's name> here), to commit
-#       before a session ends: the run lives on one machine, its measurements then outlive it
+#       copy what the run has measured so far (its metrics/ files that differ from the pinned commit's, params.yaml,
+#       dvc.lock, the commit) into DIR (default: metrics/runs/<FOLDER's name>; replaced whole if it holds this run's
+#       last save, refused if another run's), to commit before a session ends: its measurements outlive the machine
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
@@ -161,6 +161,13 @@ EOF
     # shellcheck disable=SC1091
     source "$folder/.long_run.env"
     dest=${into:-$here/metrics/runs/$(basename "$folder")}
+    # replace only an earlier save of this same run (commit and profile): never another run's measurements
+    if [ -e "$dest" ]; then
+      ours="$(git -C "$folder" rev-parse HEAD) $LONG_RUN_PROFILE"
+      theirs=$(python3 -c 'import json, sys; r = json.load(open(sys.argv[1])); print(r["commit"], r["profile"])' \
+        "$dest/run.json" 2>/dev/null) || theirs="(no run.json)"
+      [ "$theirs" = "$ours" ] || die "$dest holds other measurements (run: $theirs): save into a folder of its own, --into DIR"
+    fi
     running=false
     if running_pid > /dev/null; then running=true; fi
     # whole or absent: build beside the destination, then swap it in

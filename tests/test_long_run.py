@@ -203,6 +203,22 @@ def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
     again = subprocess.run(["bash", SCRIPT, "stop", str(folder)], capture_output=True, text=True)
     assert again.returncode == 2 and "is not running" in again.stderr
 
+    # save replaces an earlier save of this run, never another run's measurements (nor a folder that is no save)
+    ours = tmp_path / "ours"
+    run_tool(["bash", SCRIPT, "save", str(folder), "--into", str(ours)], tmp_path)
+    run_tool(["bash", SCRIPT, "save", str(folder), "--into", str(ours)], tmp_path)
+    theirs, not_a_save = tmp_path / "theirs", tmp_path / "not-a-save"
+    theirs.mkdir()
+    (theirs / "run.json").write_text(json.dumps({"commit": "0" * 40, "profile": ""}))
+    not_a_save.mkdir()
+    (not_a_save / "notes.txt").write_text("mine\n")
+    for dest in (theirs, not_a_save):
+        before = {path.name: path.read_text() for path in dest.iterdir()}
+        save = ["bash", SCRIPT, "save", str(folder), "--into", str(dest)]
+        refused = subprocess.run(save, capture_output=True, text=True)
+        assert refused.returncode == 2 and "holds other measurements" in refused.stderr
+        assert {path.name: path.read_text() for path in dest.iterdir()} == before  # untouched
+
 
 def _group(pgid: int) -> list[str]:
     """The live (not zombie) processes of process group ``pgid``, read from /proc."""
