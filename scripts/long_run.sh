@@ -48,7 +48,7 @@ done
 group_alive() {  # whether a process of group $1 is alive (a zombie not yet reaped is not)
   local stat line fields
   for stat in /proc/[0-9]*/stat; do
-    read -r line < "$stat" 2>/dev/null || continue   # the process ended while we looked
+    { read -r line < "$stat"; } 2>/dev/null || continue   # the process ended while we looked
     read -r -a fields <<< "${line##*) }"             # after "pid (comm) ": state, ppid, pgrp, ...
     [ "${fields[2]}" = "$1" ] && [ "${fields[0]}" != Z ] && return 0
   done
@@ -151,9 +151,10 @@ EOF
     [ -f "$folder/.long_run.env" ] || die "$folder is not a long run"
     pid=$(running_pid) || die "$folder is not running"
     kill -TERM -- "-$pid" 2>/dev/null || kill -TERM "$pid"   # the run's process group (setsid): DVC and its stage
+    kill -CONT -- "-$pid" 2>/dev/null || true                  # a paused (SIGSTOP) stage must run to take the TERM
     # a training stage ends its step and writes its resume state before it goes (stop_signals.py): wait for them all
     for _ in $(seq 30); do group_alive "$pid" || break; sleep 1; done
-    if group_alive "$pid"; then kill -KILL -- "-$pid" 2>/dev/null || kill -KILL "$pid"; fi
+    if group_alive "$pid"; then kill -KILL -- "-$pid" 2>/dev/null || kill -KILL "$pid" 2>/dev/null || true; fi
     echo "stopped $folder (continue: bash scripts/long_run.sh resume $folder)"
     ;;
   save)

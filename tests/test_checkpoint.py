@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -364,6 +365,19 @@ def test_a_second_stop_signal_acts_at_once_and_without_a_resume_state_none_waits
     assert logged == [5, 10]
 
 
+def test_an_error_while_a_stop_signal_waits_ends_training_with_its_own_traceback(
+    tmp_path: Path, dataset: WindowDataset, new_bundle, former_sigterm
+) -> None:
+    def terminate_then_fail_at_15(step: int, loss: float) -> None:
+        if step == 15:
+            os.kill(os.getpid(), signal.SIGTERM)
+            raise ValueError("broken at 15")
+
+    with pytest.raises(ValueError, match="broken at 15"):  # not the signal's Interrupted
+        train(new_bundle(0), dataset, CFG, CPU, tmp_path / "resume.pt", "run", on_log=terminate_then_fail_at_15)
+    assert signal.getsignal(signal.SIGTERM) is former_sigterm
+
+
 CHILD = """import sys
 from pathlib import Path
 
@@ -393,6 +407,8 @@ def test_a_training_process_stopped_by_sigterm_ends_by_it_with_its_resume_state_
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
     )  # fmt: skip
     assert child.stdout is not None
+    watchdog = threading.Timer(300, child.kill)  # a child that never logs step 20 fails the test, not hangs it
+    watchdog.start()
     lines = []
     for line in child.stdout:  # training for some steps
         lines.append(line)
@@ -400,6 +416,7 @@ def test_a_training_process_stopped_by_sigterm_ends_by_it_with_its_resume_state_
             break
     child.send_signal(signal.SIGTERM)
     rest, _ = child.communicate(timeout=120)
+    watchdog.cancel()
     assert child.returncode == -signal.SIGTERM, "".join(lines) + rest
     stopped = torch.load(resume, weights_only=False)["step"]
     assert 20 <= stopped < 100_000

@@ -2,9 +2,10 @@
 
 While a training loop that keeps a resume state runs, SIGTERM (``long_run.sh stop``, a scheduler, ``kill``) and
 SIGINT (Ctrl-C) are held by :class:`DeferredStop`: the loop finishes its step, writes its resume state there, then
-the signal is sent again and takes its course (the process ends as it would have; a Python handler, such as the
-one raising ``KeyboardInterrupt``, runs). A second signal while one waits acts at once. Outside the main thread,
-or for a signal that is ignored or handled outside Python, nothing changes.
+the signal is sent again and takes its course (SIGTERM ends the process as it would have; a Python handler, such as
+the one raising ``KeyboardInterrupt`` for SIGINT, runs). A second signal while one waits acts at once. Outside the
+main thread, or for a signal that is ignored or handled outside Python, nothing changes; an error raised in the loop
+while a signal waits ends it with its own traceback.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ HELD = (signal.SIGTERM, signal.SIGINT)
 
 class DeferredStop:
     """Context manager: while it is open, :data:`HELD` signals only set :attr:`received`; :meth:`deliver` sends it
-    again with the former handlers back. A signal still held when the context closes is delivered then. With
+    again with the former handlers back. A signal still held when the context closes normally is delivered then. With
     ``enabled`` false (a loop without a resume state) it holds nothing."""
 
     def __init__(self, enabled: bool = True) -> None:
@@ -49,8 +50,9 @@ class DeferredStop:
 
     def deliver(self) -> None:
         """Put the former handlers back and send the held signal to this process again (nothing if none)."""
-        signum, self.received = self.received, None
-        self._restore()
+        signum = self.received
+        self._restore()  # from here a signal goes to the former handler
+        self.received = None
         if signum is not None:
             os.kill(os.getpid(), signum)
 
@@ -62,4 +64,8 @@ class DeferredStop:
     def __exit__(
         self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
     ) -> None:
-        self.deliver()
+        if kind is None:
+            self.deliver()
+        else:  # the error ends the loop, with its traceback: a signal held meanwhile is dropped
+            self._restore()
+            self.received = None
