@@ -8,6 +8,7 @@ import signal
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -314,6 +315,17 @@ def former_sigterm():
     signal.signal(signal.SIGTERM, former)
 
 
+def sigterm_at(step: int, times: int = 1) -> Callable[[int, float], None]:
+    """An ``on_log`` that sends this process SIGTERM ``times`` times when step ``step`` is logged."""
+
+    def on_log(logged: int, loss: float) -> None:
+        if logged == step:
+            for _ in range(times):
+                os.kill(os.getpid(), signal.SIGTERM)
+
+    return on_log
+
+
 def test_a_stop_signal_waits_for_the_end_of_the_step_and_its_resume_state(
     tmp_path: Path, dataset: WindowDataset, new_bundle, former_sigterm
 ) -> None:
@@ -322,13 +334,9 @@ def test_a_stop_signal_waits_for_the_end_of_the_step_and_its_resume_state(
     straight = new_bundle(0)
     train(straight, dataset, CFG, CPU, progress=False)
 
-    def terminate_at_25(step: int, loss: float) -> None:
-        if step == 25:
-            os.kill(os.getpid(), signal.SIGTERM)
-
     resume = tmp_path / "resume.pt"
     with pytest.raises(Interrupted):
-        train(new_bundle(0), dataset, CFG, CPU, resume, "run", on_log=terminate_at_25, progress=False)
+        train(new_bundle(0), dataset, CFG, CPU, resume, "run", on_log=sigterm_at(25), progress=False)
     assert torch.load(resume, weights_only=False)["step"] == 25  # not 20, the last checkpoint
     assert signal.getsignal(signal.SIGTERM) is former_sigterm  # the process's own handler is back
 
@@ -342,14 +350,9 @@ def test_a_stop_signal_waits_for_the_end_of_the_step_and_its_resume_state(
 def test_a_second_stop_signal_acts_at_once_and_without_a_resume_state_none_waits(
     tmp_path: Path, dataset: WindowDataset, new_bundle, former_sigterm
 ) -> None:
-    def terminate_twice_at_25(step: int, loss: float) -> None:
-        if step == 25:
-            os.kill(os.getpid(), signal.SIGTERM)
-            os.kill(os.getpid(), signal.SIGTERM)
-
     resume = tmp_path / "resume.pt"
     with pytest.raises(Interrupted):
-        train(new_bundle(0), dataset, CFG, CPU, resume, "run", on_log=terminate_twice_at_25, progress=False)
+        train(new_bundle(0), dataset, CFG, CPU, resume, "run", on_log=sigterm_at(25, times=2), progress=False)
     assert torch.load(resume, weights_only=False)["step"] == 20  # stopped inside step 25, before its state
 
     logged: list[int] = []

@@ -106,8 +106,14 @@ def save_resume_state(path: Path, state: dict[str, Any]) -> None:
         torch.save(state, tmp)
 
 
-def stop_after_step(stop: DeferredStop, step: int, resume_path: Path) -> None:
-    """With a stop signal held, the step's resume state just written: say so and let the signal take its course."""
+def save_state_when_due(
+    resume_path: Path | None, due: bool, stop: DeferredStop, step: int, state: Callable[[int], dict[str, Any]]
+) -> None:
+    """After step ``step``: write its resume state (``state(step)``) when a checkpoint is ``due`` or a stop signal
+    waits, then let a waiting signal take its course (saying so). Nothing without ``resume_path``."""
+    if resume_path is None or not (due or stop.received is not None):
+        return
+    save_resume_state(resume_path, state(step))
     if stop.received is not None:
         tqdm.write(f"{stop.name}: stopping after step {step}, resume state {resume_path}")
         sys.stdout.flush()  # the signal may end the process before Python would
@@ -255,11 +261,11 @@ def train(
             checkpoint = done % cfg.checkpoint_every == 0 or done == cfg.steps
             if on_checkpoint is not None and checkpoint:
                 on_checkpoint(done)
-            if resume_path is not None and (checkpoint or stop.received is not None):
-                state = loop_state(run_id, done, optimizer, rng, gen, log)
-                weights = {"model": model.model.state_dict(), "ema": ema.model.state_dict()}
-                save_resume_state(resume_path, state | weights)
-                stop_after_step(stop, done, resume_path)
+            save_state_when_due(
+                resume_path, checkpoint, stop, done,
+                lambda step: loop_state(run_id, step, optimizer, rng, gen, log)
+                | {"model": model.model.state_dict(), "ema": ema.model.state_dict()},
+            )  # fmt: skip
     model.eval()
     ema.eval()
     bundle.optimizer = optimizer_record(optimizer)

@@ -30,8 +30,7 @@ from adaptdiffuser.training import (
     load_resume_state,
     loop_state,
     restore_loop_state,
-    save_resume_state,
-    stop_after_step,
+    save_state_when_due,
 )
 
 VALUE_FILES = ("value.pt", "config.json")
@@ -107,11 +106,10 @@ def train_value(
             log.add(loss.item())
             done = step + 1
             log.step_done(done)
-            checkpoint = done % settings.checkpoint_every == 0 or done == settings.steps
-            if resume_path is not None and (checkpoint or stop.received is not None):
-                state = loop_state(run_id, done, optimizer, rng, gen, log)
-                save_resume_state(resume_path, state | {"model": value_net.state_dict()})
-                stop_after_step(stop, done, resume_path)
+            save_state_when_due(
+                resume_path, done % settings.checkpoint_every == 0 or done == settings.steps, stop, done,
+                lambda step: loop_state(run_id, step, optimizer, rng, gen, log) | {"model": value_net.state_dict()},
+            )  # fmt: skip
     value_net.eval()
     return log.history
 
