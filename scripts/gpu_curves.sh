@@ -47,7 +47,6 @@ prepare() {
   local py="$here/.venv/bin/python" cli="$here/.venv/bin/adaptdiffuser"
   [ -x "$cli" ] || die "no .venv here: run bash scripts/setup.sh first"
   mkdir -p gpu
-  grep -qx "/gpu/" .git/info/exclude 2>/dev/null || echo "/gpu/" >> .git/info/exclude
   local ws
   for ws in paper science; do
     mkdir -p "gpu/ws-$ws"
