@@ -31,7 +31,7 @@ from adaptdiffuser.families.maze2d.evolution import judge_rollouts, stay_after_a
 from adaptdiffuser.families.maze2d.execution import PlannerController
 from adaptdiffuser.families.maze2d.generation import NavigationTasks, task_trajectories
 from adaptdiffuser.families.maze2d.rollouts import ERROR_COLUMN, real_length, run_rollouts, settle_at_goal
-from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, RolloutRule
+from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, PaperReturnClause, RolloutRule
 from adaptdiffuser.families.maze2d.tasks import sample_navigation_tasks
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
@@ -124,16 +124,33 @@ def test_rollout_rule_keeps_rollouts_that_reach_the_goal_early_by_their_real_len
     returns = np.array([t.total_reward for t in judged])
     lengths = np.array([real_length(t) for t in judged])
     assert lengths.tolist() == [60, 150, 300, 250] and returns.tolist() == [1, 1, 0, 1]
-    paper = RolloutRule(PAPER_MAZE_RULES["umaze"], 300, rank_by_episode_return=False)
-    # R + (300 - L) > 210 keeps L <= 90 (the protocol's return of an episode at the goal from step L on); the
-    # paper's L > 200 clause keeps the slow one; the one that never arrives is never a candidate, though its
-    # L = 300 would pass that clause
-    assert paper.select(returns, lengths).tolist() == [0, 3]
+    paper = RolloutRule(PaperReturnClause(300, 210.0), 300, rank_by_episode_return=False)
+    # R + (300 - L) > 210 keeps L <= 90 (the protocol's return of an episode at the goal from step L on); the slow
+    # one and the one that never arrives are not kept, though the whole paper rule's L > 200 clause would keep both
+    assert paper.select(returns, lengths).tolist() == [0]
     assert PAPER_MAZE_RULES["umaze"].select(returns, lengths).tolist() == [0, 2, 3]
     # generic rules rank the rollouts that arrive by that same episode return: the shortest first
     assert RolloutRule(TopKRule(2), 300, True).select(returns, lengths).tolist() == [0, 1]
     assert RolloutRule(QuantileRule(1.0), 300, True).select(returns, lengths).tolist() == [0]
     assert RolloutRule(TopKRule(2), 300, True).select(np.zeros(2), np.array([300, 300])).tolist() == []
+
+
+def test_the_paper_rule_on_arrival_times_keeps_the_shorter_paths_on_every_maze() -> None:
+    """Read on the steps a rollout took to arrive, the whole paper rule keeps only the slowest arrivals on Medium
+    (L > 450: with R = 1 its return clause needs L < 201, its length clause L > 200); the return clause alone, which
+    the rollouts recipe applies under ``rule: paper``, keeps arrivals within 90 / 200 / 400 steps."""
+    arrivals = np.array([50, 90, 91, 150, 200, 201, 300, 400, 401, 500, 700])
+    for maze, within in (("umaze", 90), ("medium", 200), ("large", 400)):
+        name = f"maze2d-{maze}"
+        one_task = {"tasks": [name], "unseen_tasks": [name], "collect_tasks": [name], "evolve": name}
+        params = params_from_dict({**one_task, "task": {name: {"family": "maze2d", "env": {"maze": maze}}}})
+        resolved = params.resolve(name)
+        cut = arrivals[arrivals < resolved.settings.episode_steps]
+        rule = get_family("maze2d").selection_rule(resolved, DiscriminateParams(rule="paper"), "rollouts")
+        kept = cut[rule.select(np.ones(len(cut)), cut)]
+        assert kept.tolist() == cut[cut <= within].tolist(), maze
+    literal = PAPER_MAZE_RULES["medium"]
+    assert [n for n in range(1, 600) if literal.keeps(1.0, n)] == list(range(451, 600))
 
 
 def expert_rollout(start: tuple[int, int], goal: tuple[int, int], max_steps: int = 300) -> TrackedTrajectory:
@@ -293,7 +310,7 @@ def test_recipe_settings_are_checked_with_one_line_naming_the_key(tmp_path: Path
     assert params.phase(1).generate.replan_every == 0  # plan once per rollout
     task = params.resolve(TASK)
     rule = get_family("maze2d").selection_rule(task, DiscriminateParams(rule="paper"), "rollouts")
-    assert rule == RolloutRule(PAPER_MAZE_RULES["umaze"], 80, rank_by_episode_return=False)
+    assert rule == RolloutRule(PaperReturnClause(300, 210.0), 80, rank_by_episode_return=False)
     assert get_family("maze2d").selection_rule(task, DiscriminateParams(rule="paper")) is PAPER_MAZE_RULES["umaze"]
     # a family without the recipe refuses it by name
     raw = yaml.safe_load(apply_profile("quick-locomotion", PROFILES, tmp_path / "locomotion.yaml").read_text())

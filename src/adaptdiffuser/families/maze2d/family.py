@@ -113,15 +113,16 @@ class Maze2DFamily(Family):
     def selection_rule(self, task: TaskParams, cfg: DiscriminateParams, recipe: str = "plans") -> SelectionRule:
         """The discriminator's rule for the navigation tasks of ``task``'s evolution: under ``rule: paper`` the
         appendix's thresholds for its maze, else the generic rule ``cfg.rule`` names; for data made by the
-        ``rollouts`` recipe that rule among the rollouts that reach their goal, on their real length
-        (``RolloutRule``)."""
+        ``rollouts`` recipe, among the rollouts that reach their goal on their real length (``RolloutRule``), the
+        paper rule's return clause alone (``PaperReturnClause``: the shorter paths) or that generic rule."""
         from adaptdiffuser.evolution.discriminator import generic_selection_rule
-        from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, RolloutRule
+        from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, PaperReturnClause, RolloutRule
 
         paper = cfg.rule == "paper"
         rule = PAPER_MAZE_RULES[task.settings.env.maze] if paper else generic_selection_rule(cfg)
         if recipe == "rollouts":
-            return RolloutRule(rule, task.settings.episode_steps, rank_by_episode_return=not paper)
+            inner = PaperReturnClause(rule.episode_steps, rule.min_score) if paper else rule
+            return RolloutRule(inner, task.settings.episode_steps, rank_by_episode_return=not paper)
         return rule
 
     def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):

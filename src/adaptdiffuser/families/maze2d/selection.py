@@ -34,6 +34,24 @@ class PaperMazeRule:
         return np.flatnonzero([self.keeps(r, int(n)) for r, n in zip(returns, lengths, strict=True)])
 
 
+@dataclass(frozen=True)
+class PaperReturnClause:
+    """The return clause of :class:`PaperMazeRule` alone, for rollouts that end where they reach the goal: keep when
+    ``R + (episode_steps - L) > min_score``, that is when the episode that arrives after ``L`` steps and stays earns
+    more than the paper's threshold, so arrivals within 90 / 200 / 400 steps on U-Maze / Medium / Large. The rule's
+    length clauses are left out: on arrival times ``L > long_length`` would keep the slowest arrivals, and with
+    ``L > min_length`` the return clause admits no rollout at all on Medium (``L > 200`` and ``L < 201``)."""
+
+    episode_steps: int
+    min_score: float
+
+    def select(self, returns: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+        """Positions of the rollouts that arrive early enough (a
+        :class:`~adaptdiffuser.evolution.discriminator.SelectionRule`)."""
+        scores = np.asarray(returns, dtype=np.float64) + (self.episode_steps - np.asarray(lengths, dtype=np.int64))
+        return np.flatnonzero(scores > self.min_score)
+
+
 # The appendix's thresholds per maze (U-Maze / Medium / Large).
 PAPER_MAZE_RULES = {
     "umaze": PaperMazeRule(300, 200, 50, 210.0),
@@ -53,11 +71,10 @@ def picks_coin_then_reaches_goal(trajectory: TrackedTrajectory, coin: np.ndarray
 class RolloutRule:
     """Selection among rollouts, whose length ``L`` is the real one (steps until the goal is first reached, or the
     whole rollout when it never is) and whose return ``R`` is 1 when they reach the goal (they end there) and 0
-    otherwise. Only rollouts that reach the goal are candidates (a rollout that never does is as long as an
-    episode, which the paper's ``L > long_length`` clause would keep); among them ``inner`` decides: the paper's
-    rule on ``(R, L)`` (where ``R + (episode_steps - L)`` is exactly the protocol's return of an episode that
-    reaches the goal after L steps and stays), or a generic rule (``quantile``, ``top_k``) ranking by that same
-    episode return, so shorter paths rank higher."""
+    otherwise. Only rollouts that reach the goal are candidates; among them ``inner`` decides: the paper's return
+    clause on ``(R, L)`` (:class:`PaperReturnClause`: ``R + (episode_steps - L)`` is exactly the protocol's return of
+    an episode that reaches the goal after L steps and stays), or a generic rule (``quantile``, ``top_k``) ranking
+    by that same episode return; either way shorter paths are preferred, as the author's recipe asks."""
 
     inner: SelectionRule
     episode_steps: int
