@@ -38,6 +38,8 @@ from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
 from adaptdiffuser.stages.report import (
     d4rl_table,
+    gains_table,
+    merge_summaries,
     rescaled_difference,
     rescaled_score,
     run_report,
@@ -196,6 +198,42 @@ def test_scores_are_tabled_on_d4rl_constants_where_the_task_gives_them() -> None
         "| maze | 1 | 122.0 ± 1.6 | 120.3 ± 0.8 | 1.6 ± 0.3 |",
     ]
     assert d4rl_table({"hopper": summary["hopper"]}) == []
+
+
+def test_merged_summaries_keep_every_run_and_recipe_of_a_task() -> None:
+    """`adaptdiffuser gains A.json B.json`: a run's phase-0-only entry of a task another file evolved from the same
+    phase 0 gives way to the evolved one; entries of one task that differ otherwise (two recipes; two runs' phase 0)
+    are each kept, named by their file, never one overwriting the other."""
+
+    def phase(score: float, gain: float | None = None) -> dict:
+        entry = {"score_mean": score, "score_stderr": 0.1, "return_mean": 0.0, "n_episodes": 50, "n_seeds": 3}
+        if gain is not None:
+            entry |= {
+                "control": {"score_mean": score - gain, "score_stderr": 0.1},
+                "gain_mean": gain,
+                "gain_stderr": 0.1,
+            }
+        return entry
+
+    base = phase(81.2)
+    plans = {"maze": {"phase_0": base, "phase_1": phase(80.9, -0.2)}, "hopper": {"phase_0": phase(22.2)}}
+    rollouts = {"maze": {"phase_0": base, "phase_1": phase(81.5, 0.4)}}
+    hopper = {"hopper": {"phase_0": phase(33.1), "phase_1": phase(31.5, -1.2)}, "maze": {"phase_0": base}}
+    merged = merge_summaries([("plans", plans), ("rollouts", rollouts), ("hopper", hopper)])
+    assert merged == {
+        "maze (plans)": plans["maze"],
+        "maze (rollouts)": rollouts["maze"],
+        "hopper (plans)": plans["hopper"],  # another run's phase 0 (22.2, not 33.1): both shown
+        "hopper (hopper)": hopper["hopper"],
+    }
+    rows = gains_table(merged)[2:]
+    assert "| maze (plans) | 1 | 80.9 ± 0.1 | 81.1 ± 0.1 | -0.2 ± 0.1 | 3 x 50 |" in rows[1]
+    assert "| maze (rollouts) | 1 | 81.5 ± 0.1 | 81.1 ± 0.1 | 0.4 ± 0.1 | 3 x 50 |" in rows[3]
+    # the evolved entry wins over a phase-0-only one of the same phase 0, whichever file comes first
+    same_start = {"hopper": {"phase_0": phase(33.1)}}
+    for order in ([("a", same_start), ("b", hopper)], [("b", hopper), ("a", same_start)]):
+        assert merge_summaries(order)["hopper"] == hopper["hopper"]
+    assert merge_summaries([("a", plans), ("a again", plans)]) == plans
 
 
 def test_unseen_task_scores_are_tabled_against_the_control() -> None:

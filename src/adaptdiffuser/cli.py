@@ -445,13 +445,13 @@ def gains(
 ) -> None:
     """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error) as a
     Markdown table; then the same on D4RL's constants where the task gives them (Maze2D), and the score on the
-    unseen task (gold coin, pick-and-place), phase against control."""
+    unseen task (gold coin, pick-and-place), phase against control. A task whose entries in several files differ
+    beyond phase 0 (two recipes, two runs) is listed once per file, as ``<task> (<file name>)``."""
     from adaptdiffuser.io import read_json
-    from adaptdiffuser.stages.report import d4rl_table, gains_table, unseen_table
+    from adaptdiffuser.stages.report import d4rl_table, gains_table, merge_summaries, unseen_table
 
-    merged: dict = {}
-    for path in summaries or [Path("metrics/summary.json")]:
-        merged |= _guarded(lambda path=path: read_json(path, f"{path} (run the summarize stage)"))
+    read = lambda path: _guarded(lambda: read_json(path, f"{path} (run the summarize stage)"))  # noqa: E731
+    merged = merge_summaries([(path.stem, read(path)) for path in summaries or [Path("metrics/summary.json")]])
     for line in gains_table(merged):
         typer.echo(line)
     for table in (d4rl_table(merged), unseen_table(merged)):

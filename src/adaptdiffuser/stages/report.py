@@ -52,6 +52,34 @@ def _pm(mean: float | None, stderr: float | None) -> str:
     return "" if mean is None else f"{mean:.1f} ± {stderr or 0.0:.1f}"
 
 
+def _only_phase_0_of(entry: dict, other: dict) -> bool:
+    """Whether a task's summary entry holds no phase beyond 0 and its phase 0 is ``other``'s."""
+    phases = {key for key in entry if key.startswith("phase_")}
+    return phases == {"phase_0"} and entry["phase_0"] == other.get("phase_0")
+
+
+def merge_summaries(summaries: list[tuple[str, dict]]) -> dict:
+    """One summary from several ``(label, summary)``, for tables over several runs, losing no result: a task found
+    in one file stays as it is; an entry that holds only the phase 0 another file's entry of that task holds too (the
+    non-evolved tasks of a run) gives way to the fuller one; entries of one task that differ otherwise (two recipes,
+    two runs) are all kept, each named ``<task> (<label>)``."""
+    found: dict[str, list[tuple[str, dict]]] = {}
+    for label, summary in summaries:
+        for task, entry in summary.items():
+            entries = found.setdefault(task, [])
+            if any(entry == kept or _only_phase_0_of(entry, kept) for _, kept in entries):
+                continue
+            entries[:] = [(lbl, kept) for lbl, kept in entries if not _only_phase_0_of(kept, entry)]
+            entries.append((label, entry))
+    merged: dict = {}
+    for task, entries in found.items():
+        if len(entries) == 1:
+            merged[task] = entries[0][1]
+        else:
+            merged |= {f"{task} ({label})": entry for label, entry in entries}
+    return merged
+
+
 def gains_table(summary: dict) -> list[str]:
     """A Markdown table of every task's phases in ``metrics/summary.json``: score, control score and the gain over
     the control, each mean ± standard error (over training seeds, or over episodes with one seed)."""
