@@ -352,11 +352,14 @@ def test_discriminator_executes_plans_and_rejects_what_the_simulator_cannot_do()
     assert jump_run.max_error > 1.02
     assert judgement.passed_tracking.tolist() == [True, True, False]
     assert judgement.kept.tolist() == [0]
-    # states outside the expert data's range (here: the demonstration before any block moved) are rejected
+    assert judgement.report()["off_plan"] == 1 and judgement.report()["out_of_range"] == 0
+    # states outside the expert data's range (here: the demonstration before any block moved) are rejected, and the
+    # report says which check did it
     before_lift = demo[:10]
     for excess, passed in ((0.25, [False]), (None, [True])):
         judged = judge_episodes(simulator, None, _as_generated([demo]), cfg, before_lift, excess, progress=False)
         assert judged.passed_tracking.tolist() == passed
+        assert (judged.report()["off_plan"], judged.report()["out_of_range"]) == (0, int(not passed[0]))
     assert MinReturnRule(1.5).select(np.array([1.0, 2.0, 4.0, 1.5]), np.ones(4)).tolist() == [2, 1]
 
 

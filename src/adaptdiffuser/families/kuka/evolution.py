@@ -174,15 +174,13 @@ def judge_episodes(
     for sim in sims.values():
         sim.close()
     low, high = expert.min(axis=0), expert.max(axis=0)
-    passed = np.array(
-        [
-            passes_tracking(t, cfg.max_error) and within_range(t.observations, low, high, max_range_excess)
-            for t in judged
-        ],
-        dtype=bool,
-    )
+    tracks = np.array([passes_tracking(t, cfg.max_error) for t in judged], dtype=bool)
+    in_range = np.array([within_range(t.observations, low, high, max_range_excess) for t in judged], dtype=bool)
+    passed = tracks & in_range
     kept = select(judged, np.flatnonzero(passed), selection_rule(cfg))
-    return Judgement(trajectories=judged, passed_tracking=passed, kept=kept)
+    # the report's rejected_tracking counts both checks; these tell them apart (an episode may fail both)
+    details = {"off_plan": int((~tracks).sum()), "out_of_range": int((~in_range).sum())}
+    return Judgement(trajectories=judged, passed_tracking=passed, kept=kept, details=details)
 
 
 def selected_episodes(task: TaskParams, judgement: Judgement, generator: dict[str, Any]) -> Trajectories:
