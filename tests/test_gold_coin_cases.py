@@ -114,6 +114,7 @@ def test_summary_counts_only_coin_then_goal_as_both() -> None:
     assert summary["both_rate_behind_start"] == pytest.approx(1 / 2)
     assert summary["collision_rate"] == 0.0 and summary["n_episodes"] == 4
     assert summary["score_mean"] == pytest.approx(25.0)
+    assert summary["score_stderr"] == pytest.approx(np.std([10.0, 20.0, 30.0, 40.0], ddof=1) / 2)
 
 
 class WaypointController(Controller):

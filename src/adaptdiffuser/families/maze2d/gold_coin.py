@@ -144,8 +144,8 @@ def coin_outcome(env: Maze2D, executed: np.ndarray, coin: np.ndarray, radius: fl
 
 
 def summarize_coin(outcomes: list[CoinOutcome], kinds: list[str], scores: np.ndarray) -> dict:
-    """``gold_coin`` metrics: rates over all cases (with the standard error of the both-rate), and the both-rate
-    of each kind of case."""
+    """``gold_coin`` metrics: rates over all cases (with the standard error of the both-rate), the mean score with
+    its standard error, and the both-rate of each kind of case."""
     both = np.array([o.both for o in outcomes], dtype=np.float64)
     steps = [o.goal_after_pick_step for o in outcomes if o.both]
     summary = {
@@ -156,6 +156,7 @@ def summarize_coin(outcomes: list[CoinOutcome], kinds: list[str], scores: np.nda
         "collision_rate": float(np.mean([o.plan_collides for o in outcomes])),
         "steps_to_goal_mean": float(np.mean(steps)) if steps else -1.0,
         "score_mean": float(np.mean(scores)),
+        "score_stderr": standard_error(scores),
         "n_episodes": len(outcomes),
     }
     for kind in COIN_KINDS:
