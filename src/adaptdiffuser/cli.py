@@ -450,8 +450,11 @@ def gains(
     from adaptdiffuser.io import read_json
     from adaptdiffuser.stages.report import d4rl_table, gains_table, merge_summaries, unseen_table
 
+    paths = summaries or [Path("metrics/summary.json")]
+    stems = [path.stem for path in paths]
+    labels = stems if len(set(stems)) == len(stems) else [str(path) for path in paths]  # each file its own name
     read = lambda path: _guarded(lambda: read_json(path, f"{path} (run the summarize stage)"))  # noqa: E731
-    merged = merge_summaries([(path.stem, read(path)) for path in summaries or [Path("metrics/summary.json")]])
+    merged = merge_summaries([(label, read(path)) for label, path in zip(labels, paths, strict=True)])
     for line in gains_table(merged):
         typer.echo(line)
     for table in (d4rl_table(merged), unseen_table(merged)):
