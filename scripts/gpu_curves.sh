@@ -51,18 +51,8 @@ prepare() {
   for ws in paper science; do
     mkdir -p "gpu/ws-$ws"
     (cd "gpu/ws-$ws" && "$cli" profile "$ws-large" --params params.yaml --profiles-dir "$here/profiles" >/dev/null)
-    "$py" - "gpu/ws-$ws/params.yaml" "$steps" <<'EOF'
-import sys
-
-import yaml
-
-path, steps = sys.argv[1], int(sys.argv[2])
-params = yaml.safe_load(open(path))
-params["task"]["maze2d-large"].setdefault("collect", {})["steps"] = steps
-params["compile"] = {"training": False, "sampling": False}
-with open(path, "w") as f:
-    yaml.safe_dump(params, f, sort_keys=False)
-EOF
+    "$cli" set --params "gpu/ws-$ws/params.yaml" "task.$task.collect.steps=$steps" compile.training=false \
+      compile.sampling=false > /dev/null
   done
   if [ ! -f gpu/ws-paper/data/$task/dataset.parquet ] || [ "$(cat gpu/steps 2>/dev/null)" != "$steps" ]; then
     (cd gpu/ws-paper && OMP_NUM_THREADS=1 "$cli" collect --task $task --no-progress && "$cli" reference --task $task)
