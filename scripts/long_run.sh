@@ -2,12 +2,13 @@
 # Long runs (the science profiles: hours to days on 2 CPU cores) in their own clone pinned to a commit, so that work
 # on this repository cannot make them stale; the same one command continues a run after any interruption.
 #
-#   bash scripts/long_run.sh start FOLDER [--profile NAME] [--script FILE] [--commit REV] [--from REPO] [--venv VENV]
-#                                         [--foreground]
+#   bash scripts/long_run.sh start FOLDER [--profile NAME] [--set KEY=VALUE ...] [--script FILE] [--commit REV]
+#                                         [--from REPO] [--venv VENV] [--foreground]
 #       clone REPO (default: this repository) at REV (default: its HEAD) into FOLDER, install it there (or use VENV's
-#       packages with FOLDER/src first on PYTHONPATH), switch to profile NAME (default: the commit's params.yaml)
-#       and start `dvc repro` in the background (log: FOLDER/long_run.log), or FILE, a bash script of the clone that
-#       runs `dvc repro` itself and reruns cleanly (scripts/science_maze.sh: both Maze2D recipes)
+#       packages with FOLDER/src first on PYTHONPATH), switch to profile NAME (default: the commit's params.yaml),
+#       set each KEY=VALUE in its params.yaml (`adaptdiffuser set`; --set repeats) and start `dvc repro` in the
+#       background (log: FOLDER/long_run.log), or FILE, a bash script of the clone that runs `dvc repro` itself and
+#       reruns cleanly (scripts/science_maze.sh: both Maze2D recipes)
 #   bash scripts/long_run.sh resume FOLDER [--foreground]
 #       continue where it stopped: DVC skips the stages that finished, training resumes from its last checkpoint
 #       (models/.resume/), an evaluation from its last finished training seed, the other stages rerun from their
@@ -24,17 +25,18 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,23p' "$0" >&2; exit 2; }
+usage() { sed -n '4,24p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
 action=$1
 folder=$(realpath -m "$2")
 shift 2
-profile="" script="" commit="HEAD" source="$here" venv="" foreground=0 into=""
+profile="" script="" commit="HEAD" source="$here" venv="" foreground=0 into="" settings=()
 while [ $# -gt 0 ]; do
   case $1 in
     --profile) profile=$2; shift 2 ;;
+    --set) settings+=("$2"); shift 2 ;;
     --script) script=$2; shift 2 ;;
     --commit) commit=$2; shift 2 ;;
     --from) source=$2; shift 2 ;;
@@ -101,10 +103,11 @@ case $action in
     git clone -q "$source" "$folder"
     git -C "$folder" checkout -q "$rev"
     printf 'long_run.log\nlong_run.pid\n.long_run.env\n' >> "$folder/.git/info/exclude"
-    printf 'LONG_RUN_VENV=%q\nLONG_RUN_PROFILE=%q\nLONG_RUN_SCRIPT=%q\n' "$venv" "${profile:-params.yaml of the commit}" \
-      "$script" > "$folder/.long_run.env"
+    printf 'LONG_RUN_VENV=%q\nLONG_RUN_PROFILE=%q\nLONG_RUN_SCRIPT=%q\nLONG_RUN_SETTINGS=%q\n' "$venv" \
+      "${profile:-params.yaml of the commit}" "$script" "${settings[*]}" > "$folder/.long_run.env"
     if [ -z "$venv" ]; then (cd "$folder" && bash scripts/setup.sh); fi
     if [ -n "$profile" ]; then (environment && cd "$folder" && adaptdiffuser profile "$profile"); fi
+    if [ ${#settings[@]} -gt 0 ]; then (environment && cd "$folder" && adaptdiffuser set "${settings[@]}"); fi
     echo "pinned $folder at $rev"
     launch
     ;;
@@ -117,7 +120,7 @@ case $action in
     environment
     cd "$folder"
     echo "commit: $(git log -1 --format='%h %s' | cut -c1-100)"
-    echo "profile: $LONG_RUN_PROFILE"
+    echo "profile: $LONG_RUN_PROFILE${LONG_RUN_SETTINGS:+, set: $LONG_RUN_SETTINGS}"
     echo "runs: ${LONG_RUN_SCRIPT:-dvc repro}"
     total=$(dvc stage list --name-only | wc -l)
     if pid=$(running_pid); then
@@ -179,9 +182,10 @@ EOF
     (cd "$folder" && git ls-files --others --modified -z -- metrics | sort -zu |
       while IFS= read -r -d '' file; do [ ! -f "$file" ] || cp --parents "$file" "$tmp/"; done)
     for file in params.yaml dvc.lock; do [ ! -f "$folder/$file" ] || cp "$folder/$file" "$tmp/$file"; done
-    python3 -c 'import json, sys; keys = "commit", "profile", "runs", "saved_at", "running"
-print(json.dumps(dict(zip(keys, sys.argv[1:])) | {"running": sys.argv[5] == "true"}, indent=2))' \
-      "$(git -C "$folder" rev-parse HEAD)" "$LONG_RUN_PROFILE" "${LONG_RUN_SCRIPT:-dvc repro}" \
+    python3 -c 'import json, sys; keys = "commit", "profile", "settings", "runs", "saved_at", "running"
+record = dict(zip(keys, sys.argv[1:])) | {"settings": sys.argv[3].split(), "running": sys.argv[6] == "true"}
+print(json.dumps(record, indent=2))' \
+      "$(git -C "$folder" rev-parse HEAD)" "$LONG_RUN_PROFILE" "${LONG_RUN_SETTINGS:-}" "${LONG_RUN_SCRIPT:-dvc repro}" \
       "$(date -u +%FT%TZ)" "$running" > "$tmp/run.json"
     rm -rf "$dest.old"
     if [ -e "$dest" ]; then mv "$dest" "$dest.old"; fi

@@ -24,10 +24,10 @@ MAZE = "maze2d-umaze"
 
 def _phase0_of_one_task(path: Path) -> None:
     """Phase 0 of the maze task alone over two training seeds, with a pretraining long enough to be killed between
-    its checkpoints."""
+    its checkpoints (the run sets them 100 steps apart: ``long_run.sh start --set``)."""
     raw = yaml.safe_load(path.read_text())
     raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={}, seeds=[0, 1])
-    raw["pretrain"] |= {"steps": 600, "checkpoint_every": 100}
+    raw["pretrain"] |= {"steps": 600}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
 
@@ -44,8 +44,11 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     run_tool(["git", "commit", "-q", "--allow-empty", "-m", "later work"], project)  # the run stays on `head`
     folder = tmp_path / "run"
     venv = ["--venv", sys.prefix]
-    out = run_tool(["bash", SCRIPT, "start", str(folder), "--from", str(project), "--commit", head, *venv], tmp_path)
+    every = "pretrain.checkpoint_every=100"
+    start = ["bash", SCRIPT, "start", str(folder), "--from", str(project), "--commit", head, "--set", every, *venv]
+    out = run_tool(start, tmp_path)
     assert f"pinned {folder} at {head}" in out
+    assert yaml.safe_load((folder / "params.yaml").read_text())["pretrain"]["checkpoint_every"] == 100
     seed1 = folder / "models" / ".resume" / f"{MAZE}-phase0-seed1.pt"
     # stop the run once the second seed's pretraining has written a whole resume state (not only its hidden
     # temporary file; the first seed's training is finished by then): SIGTERM to its process group, and the stage
@@ -58,6 +61,7 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     stopped = int(stops[0])
     status = run_tool(["bash", SCRIPT, "status", str(folder)], tmp_path)
     assert f"resume state: {MAZE}-phase0-seed1.pt (step {stopped})" in status
+    assert f"set: {every}" in status
     run_tool(["bash", SCRIPT, "resume", str(folder)], tmp_path)
     pid = int((folder / "long_run.pid").read_text())
     # then killed outright (SIGKILL, as when the machine goes) once the resumed training has passed a checkpoint
@@ -90,7 +94,7 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     out = run_tool(["bash", SCRIPT, "save", str(folder), "--into", str(saved)], tmp_path)
     assert f"in {saved}" in out and not (saved / "stale.txt").exists()
     record = json.loads((saved / "run.json").read_text())
-    assert record["commit"] == head and record["running"] is False
+    assert record["commit"] == head and record["running"] is False and record["settings"] == [every]
     assert (saved / "params.yaml").read_bytes() == (folder / "params.yaml").read_bytes()
     assert (saved / "dvc.lock").read_bytes() == (folder / "dvc.lock").read_bytes()
     files = [path.relative_to(saved) for path in sorted((saved / "metrics").rglob("*")) if path.is_file()]
