@@ -115,6 +115,9 @@ def test_summary_counts_only_coin_then_goal_as_both() -> None:
     assert summary["collision_rate"] == 0.0 and summary["n_episodes"] == 4
     assert summary["score_mean"] == pytest.approx(25.0)
     assert summary["score_stderr"] == pytest.approx(np.std([10.0, 20.0, 30.0, 40.0], ddof=1) / 2)
+    # no case that reaches both: its steps are not measured (None), not a number a mean over seeds would take in
+    none = summarize_coin(outcomes[1::2], kinds[1::2], np.array([20.0, 40.0]))
+    assert none["both_rate"] == 0.0 and none["steps_to_goal_mean"] is None
 
 
 class WaypointController(Controller):

@@ -294,6 +294,22 @@ def test_over_seeds_with_one_seed_changes_nothing_but_adds_the_seed() -> None:
     assert merged["stderr_over"] == "episodes" and merged["n_seeds"] == 1 and merged["seeds"] == {"0": metrics}
 
 
+def test_a_number_a_seed_could_not_measure_is_left_out_of_the_mean_over_seeds() -> None:
+    """A seed whose coin episodes never reached both has no steps to average (None): the mean over seeds is that of
+    the seeds that measured it, not pulled down by a stand-in value; None where no seed measured it."""
+
+    def seed(steps: float | None, rate: float) -> dict:
+        return {"gold_coin": {"steps_to_goal_mean": steps, "both_rate": rate, "never": None}, "score_mean": rate}
+
+    merged = over_seeds({0: seed(120.0, 0.5), 1: seed(None, 0.0), 2: seed(140.0, 0.25)})
+    coin = merged["gold_coin"]
+    assert coin["steps_to_goal_mean"] == pytest.approx(130.0)
+    assert coin["both_rate"] == pytest.approx(0.25) and coin["never"] is None
+    assert merged["seeds"]["1"]["gold_coin"]["steps_to_goal_mean"] is None  # each seed's own, as it measured
+    one = over_seeds({0: {"x_mean": 2.0, "x_stderr": 0.1}, 1: {"x_mean": None, "x_stderr": None}})
+    assert one["x_mean"] == 2.0 and one["x_stderr"] is None  # no spread over one measured seed
+
+
 def test_a_summary_with_its_dataset_draws_the_datasets_score(tmp_path: Path) -> None:
     """The figure of a task whose summary gives its dataset's score shows it (a dashed line): does the planner beat
     its data? Without it, the figure is the plain score by phase."""

@@ -3,8 +3,9 @@ metrics and their aggregate, so every reader (summary, report, sweep) sees one n
 
 Episodes are averaged within a seed first; the aggregate of every number is its mean over seeds, and every
 ``<name>_stderr`` beside a ``<name>_mean`` (or a ``<name>``) becomes the standard error of that mean over seeds
-when there are two or more. With one seed the aggregate is that seed's metrics unchanged (the standard errors are
-then over episodes: ``stderr_over`` says which)."""
+when there are two or more. A number a seed could not measure (None: a mean over no episode) is left out of its
+mean; None where no seed measured it. With one seed the aggregate is that seed's metrics unchanged (the standard
+errors are then over episodes: ``stderr_over`` says which)."""
 
 from __future__ import annotations
 
@@ -20,9 +21,19 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
+def _numbers_of(values: list[Any]) -> list[Any] | None:
+    """The numbers among ``values`` when every value is a number or None (not measured) and one is a number."""
+    if all(_is_number(v) or v is None for v in values) and any(v is not None for v in values):
+        return [v for v in values if v is not None]
+    return None
+
+
 def _mean_of(values: list[Any]) -> Any:
-    """Numbers: their mean (ints stay ints when all seeds agree); mappings: key by key; anything else: the common
-    value, or None when seeds differ."""
+    """Numbers: their mean (ints stay ints when all seeds agree), leaving out the seeds that measured none (None);
+    mappings: key by key; anything else: the common value, or None when seeds differ."""
+    numbers = _numbers_of(values)
+    if numbers is not None:
+        values = numbers
     first = values[0]
     if all(_is_number(v) for v in values):
         if all(isinstance(v, int) for v in values) and len(set(values)) == 1:
@@ -44,7 +55,8 @@ def _spread_over_seeds(merged: dict[str, Any], values: list[Mapping[str, Any]]) 
             name = key.removesuffix("_stderr")
             mean = next((m for m in (f"{name}_mean", name) if m in merged and _is_number(merged[m])), None)
             if mean is not None:
-                merged[key] = standard_error([float(v[mean]) for v in values])
+                measured = [float(v[mean]) for v in values if v[mean] is not None]
+                merged[key] = standard_error(measured) if len(measured) > 1 else None
 
 
 def _has_stderr(metrics: Mapping[str, Any]) -> bool:

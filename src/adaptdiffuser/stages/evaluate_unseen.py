@@ -110,7 +110,8 @@ def evaluate_unseen_seed(
         pictures.mkdir(parents=True, exist_ok=True)  # the stage's output, also for a family that draws none
         title = f"phase {phase}{' control' if control else ''} seed {seed}"
         metrics = family.evaluate_unseen(task, planner, params.alpha, ref, pictures, title, progress)
-        mlflow.log_metrics({f"{unseen}.{k}": float(v) for k, v in metrics.items()})
+        measured = {k: v for k, v in metrics.items() if v is not None}  # None: no episode to measure it on
+        mlflow.log_metrics({f"{unseen}.{k}": float(v) for k, v in measured.items()})
         for picture in sorted(pictures.glob("*.png")):
             mlflow.log_artifact(str(picture), artifact_path=unseen)
     return metrics

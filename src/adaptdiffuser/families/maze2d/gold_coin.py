@@ -154,7 +154,7 @@ def summarize_coin(outcomes: list[CoinOutcome], kinds: list[str], scores: np.nda
         "both_rate": float(both.mean()),
         "both_rate_stderr": standard_error(both),
         "collision_rate": float(np.mean([o.plan_collides for o in outcomes])),
-        "steps_to_goal_mean": float(np.mean(steps)) if steps else -1.0,
+        "steps_to_goal_mean": float(np.mean(steps)) if steps else None,  # no case reached both
         "score_mean": float(np.mean(scores)),
         "score_stderr": standard_error(scores),
         "n_episodes": len(outcomes),
