@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from adaptdiffuser.cli import _figures
 from adaptdiffuser.contract import Controller
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.families.maze2d.gold_coin import (
@@ -118,6 +119,8 @@ def test_summary_counts_only_coin_then_goal_as_both() -> None:
     # no case that reaches both: its steps are not measured (None), not a number a mean over seeds would take in
     none = summarize_coin(outcomes[1::2], kinds[1::2], np.array([20.0, 40.0]))
     assert none["both_rate"] == 0.0 and none["steps_to_goal_mean"] is None
+    line = _figures(sorted(none.items()))  # the evaluate-unseen stage's closing line prints it, and does not fail
+    assert "steps_to_goal_mean none" in line and "both_rate 0," in line
 
 
 class WaypointController(Controller):

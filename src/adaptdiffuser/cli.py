@@ -171,6 +171,12 @@ def evaluate(
     typer.echo(f"{name} phase {phase}: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f} ({_spread(m)})")
 
 
+def _figures(items: Any) -> str:
+    """``key value`` pairs for a stage's closing line, numbers to 3 significant digits; a metric no episode could
+    measure (None) as ``none``."""
+    return ", ".join(f"{key} {'none' if value is None else format(value, '.3g')}" for key, value in items)
+
+
 def _spread(metrics: dict) -> str:
     """What a standard error is over: the episodes of one training seed, or the seeds."""
     if metrics.get("n_seeds", 1) > 1:
@@ -215,7 +221,7 @@ def _evaluate_unseen(params: Path, task: str | None, phase: int, device: str, pr
         typer.echo(f"{who}: skipped, {m['skipped']}")
         return
     family = get_family(p.task[name].family)
-    figures = ", ".join(f"{key} {value:.3g}" for key, value in sorted(m.items()))
+    figures = _figures(sorted(m.items()))
     typer.echo(f"{who}, alpha {p.alpha:g}: {family.unseen_task} objective {family.unseen_objective(m):.2f} ({figures})")
 
 
@@ -261,7 +267,7 @@ def generate(
     name = _task(p, task, evolution=True)
     per_seed = _guarded(lambda: run_generate(p, name, Path.cwd(), phase, resolve_device(device), progress=progress))
     for seed, stats in per_seed.items():
-        details = ", ".join(f"{key} {value:.3g}" for key, value in stats.items() if key != "generated")
+        details = _figures((key, value) for key, value in stats.items() if key != "generated")
         typer.echo(f"phase {phase}, seed {seed}: generated {stats['generated']} plans ({details})")
 
 
