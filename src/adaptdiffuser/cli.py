@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
@@ -171,7 +171,7 @@ def evaluate(
     typer.echo(f"{name} phase {phase}: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f} ({_spread(m)})")
 
 
-def _figures(items: Any) -> str:
+def _figures(items: Iterable[tuple[str, float | None]]) -> str:
     """``key value`` pairs for a stage's closing line, numbers to 3 significant digits; a metric no episode could
     measure (None) as ``none``."""
     return ", ".join(f"{key} {'none' if value is None else format(value, '.3g')}" for key, value in items)
