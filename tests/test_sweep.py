@@ -360,12 +360,18 @@ def postgres():
 
 def test_the_same_sweep_runs_on_postgresql(project: Path, postgres: str) -> None:
     raw = yaml.safe_load((project / "params.yaml").read_text())
-    raw["sweep"]["study"] = "on-postgres"
+    # the storage is what this test is about: one phase scored on its own is 4 stages a trial (the journal test
+    # above runs the gain objective's 12)
+    raw["phases"] = {"phase1": {"previous": 0}}
+    raw["sweep"] |= {"study": "on-postgres", "objective": "score"}
     (project / "pg.yaml").write_text(yaml.safe_dump(raw))
     out = _sweep(project, "--params", "pg.yaml", "--trials", "2", "--workers", "2", "--storage", postgres)
     assert out.returncode == 0, out.stdout + out.stderr
     study = optuna.load_study(study_name="on-postgres", storage=postgres)
-    assert len(study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))) == 2
+    trials = study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
+    assert len(trials) == 2
+    logs = sorted(p.name for p in (project / "sweeps" / "on-postgres" / f"trial_{trials[0].number}" / "logs").iterdir())
+    assert logs == sorted(f"{stage}-phase1.log" for stage in ("generate", "discriminate", "finetune", "evaluate"))
     _, (parent, *children) = _sweep_runs(project, "on-postgres")
     assert len(children) == 2 and parent.data.tags["storage"] == postgres
 
