@@ -50,6 +50,7 @@ def measure(code: str, folder: str) -> tuple[float, float]:
 
 
 def in_new_folder(code: str) -> tuple[float, float]:
+    """:func:`measure` in a new empty folder (a project with no MLflow store yet)."""
     with tempfile.TemporaryDirectory() as folder:
         return measure(code, folder)
 
