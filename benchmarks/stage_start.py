@@ -62,8 +62,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as project:
         measure(STEPS["+ MLflow run"], project)  # the store an earlier stage made; warms the file cache too
         print(f"{'step':<26} {'wall s':>8} {'cpu s':>8}   (median of {args.repeats})")
-        for name, code in [*STEPS.items(), (NEW_STORE, STEPS["+ MLflow run"])]:
-            runs = [in_new_folder(code) if name == NEW_STORE else measure(code, project) for _ in range(args.repeats)]
+        steps = [(name, code, lambda c: measure(c, project)) for name, code in STEPS.items()]
+        for name, code, run in [*steps, (NEW_STORE, STEPS["+ MLflow run"], in_new_folder)]:
+            runs = [run(code) for _ in range(args.repeats)]
             wall = statistics.median(r[0] for r in runs)
             cpu = statistics.median(r[1] for r in runs)
             print(f"{name:<26} {wall:8.2f} {cpu:8.2f}", flush=True)

@@ -87,6 +87,11 @@ def _sweep(root: Path, *args: str) -> subprocess.CompletedProcess:
     )
 
 
+def _trial_logs(root: Path, study: str, number: int) -> list[str]:
+    """The names of the stage logs a sweep trial left, sorted."""
+    return sorted(p.name for p in (root / "sweeps" / study / f"trial_{number}" / "logs").iterdir())
+
+
 def _sweep_runs(root: Path, study: str) -> tuple[object, list]:
     client = MlflowClient(f"sqlite:///{root / 'mlflow.db'}")
     experiment = client.get_experiment_by_name(TASK)
@@ -109,8 +114,7 @@ def test_two_workers_share_a_journal_study_and_mlflow_nests_the_trials(project: 
     assert len({t.user_attrs["worker_pid"] for t in trials}) == 2  # two processes each ran one trial
     assert all(sorted(t.intermediate_values) == [1, 2] for t in trials)  # a score after each phase
     # each trial ran the commands dvc.yaml declares for the gain objective, and nothing else
-    trial_dir = project / "sweeps" / "adaptdiffuser" / f"trial_{trials[0].number}"
-    logs = sorted(p.name for p in (trial_dir / "logs").iterdir())
+    logs = _trial_logs(project, "adaptdiffuser", trials[0].number)
     expected = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control")
     assert logs == sorted(f"{stage}-phase{k}.log" for stage in expected for k in (1, 2))
 
@@ -370,7 +374,7 @@ def test_the_same_sweep_runs_on_postgresql(project: Path, postgres: str) -> None
     study = optuna.load_study(study_name="on-postgres", storage=postgres)
     trials = study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))
     assert len(trials) == 2
-    logs = sorted(p.name for p in (project / "sweeps" / "on-postgres" / f"trial_{trials[0].number}" / "logs").iterdir())
+    logs = _trial_logs(project, "on-postgres", trials[0].number)
     assert logs == sorted(f"{stage}-phase1.log" for stage in ("generate", "discriminate", "finetune", "evaluate"))
     _, (parent, *children) = _sweep_runs(project, "on-postgres")
     assert len(children) == 2 and parent.data.tags["storage"] == postgres
