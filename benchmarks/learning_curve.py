@@ -6,8 +6,9 @@ one training seed) up to ``--steps``, and every ``--every`` steps evaluates the 
 ``--episodes`` episodes from ``--seed`` (default 7: a validation seed, never ``evaluate.seed``). Each point goes to
 ``--out`` (JSON lines: step, score mean and standard error, success rate where the family reports it, the
 training's CPU seconds so far (this process's: other work on the machine does not count) and its wall seconds,
-evaluation seconds) as soon as it is measured. Stopped at any point, the same command continues from the last
-point: training resumes from its state in ``models/.resume/`` and the points already written are kept.
+evaluation seconds) as soon as it is measured. Stopped at any point, the same command continues where it stopped:
+a stop (SIGTERM, SIGINT) lets the step end and writes its resume state in ``models/.resume/`` with the clock beside
+it, a kill leaves the last point's state, and the points already written are kept.
 
 For a family whose planner is guided by a value function (locomotion), the curve first trains the task's value
 network as ``pretrain@<task>`` does (its ``value`` and ``value_model`` settings; it needs the diffusion model's
@@ -32,8 +33,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
+import signal
 import time
 from pathlib import Path
+from types import FrameType
 
 import numpy as np
 import torch
@@ -47,7 +51,7 @@ from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import normalized_score, run_episodes, standard_error
 from adaptdiffuser.family_registry import get_family
-from adaptdiffuser.io import atomic_path, read_json
+from adaptdiffuser.io import atomic_path, read_json, write_json
 from adaptdiffuser.layout import reference_path
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import resolve_device
@@ -128,14 +132,17 @@ def main() -> None:
         f"{pl.sampler_steps}; torch threads {torch.get_num_threads()}; writing {out}",
         flush=True,
     )
-    last = points[-1] if points else {}
-    clock = {"train_cpu_s": last.get("train_cpu_s", value_fields.get("value_cpu_s", 0.0)),
-             "train_s": last.get("train_s", 0.0)}  # fmt: skip
+    clock_path = resume.with_name(f"{resume.stem}-clock.json")
+    clock = resumed_clock(resume, clock_path, points, value_fields.get("value_cpu_s", 0.0))
     clock |= {"cpu_since": time.process_time(), "since": time.perf_counter()}
 
-    def evaluate(step: int) -> None:
+    def tick() -> None:
         clock["train_cpu_s"] += time.process_time() - clock["cpu_since"]
         clock["train_s"] += time.perf_counter() - clock["since"]
+        clock["cpu_since"], clock["since"] = time.process_time(), time.perf_counter()
+
+    def evaluate(step: int) -> None:
+        tick()
         if step not in done:
             start = time.perf_counter()
             planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device)
@@ -158,11 +165,41 @@ def main() -> None:
             print(json.dumps(point), flush=True)
         if args.keep_model is not None:
             save_bundle(args.keep_model / f"step{step}", bundle)
-        clock["cpu_since"], clock["since"] = time.process_time(), time.perf_counter()
+        clock["cpu_since"], clock["since"] = time.process_time(), time.perf_counter()  # evaluation is not training
 
+    def keep_clock(signum: int, frame: FrameType | None) -> None:
+        """A stop, delivered once training has written its resume state: the clock of that state, then the stop."""
+        tick()
+        write_json(clock_path, {"step": state_step(resume), "train_cpu_s": clock["train_cpu_s"],
+                                "train_s": clock["train_s"]})  # fmt: skip
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, keep_clock)
     train(bundle, dataset, cfg, device, resume, run_id, progress=not args.quiet, compiled=params.compile.training,
           on_checkpoint=evaluate)  # fmt: skip
     resume.unlink(missing_ok=True)
+    clock_path.unlink(missing_ok=True)
+
+
+def state_step(resume: Path) -> int | None:
+    """The step of the resume state at ``resume``, or None where there is none."""
+    return torch.load(resume, map_location="cpu", weights_only=False)["step"] if resume.exists() else None
+
+
+def resumed_clock(resume: Path, clock_path: Path, points: list[dict], start_cpu_s: float) -> dict[str, float]:
+    """The training's CPU and wall seconds at its resume state: written at the stop that left the state (a stop
+    between two points), else the point of the state's step; from ``start_cpu_s`` and 0 without a state."""
+    step = state_step(resume)
+    if step is None:
+        return {"train_cpu_s": start_cpu_s, "train_s": 0.0}
+    stopped = read_json(clock_path, "curve clock") if clock_path.exists() else {}
+    if stopped.get("step") == step:
+        return {"train_cpu_s": stopped["train_cpu_s"], "train_s": stopped["train_s"]}
+    at_step = [point for point in points if point["step"] == step]
+    last = at_step[0] if at_step else (points[-1] if points else {})
+    return {"train_cpu_s": last.get("train_cpu_s", start_cpu_s), "train_s": last.get("train_s", 0.0)}
 
 
 def curve_value(

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -38,7 +37,7 @@ import yaml
 
 from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.io import write_json
-from adaptdiffuser.tooling.processes import die_with_parent
+from adaptdiffuser.tooling.processes import run_stoppable
 
 HERE = Path(__file__).resolve().parent
 
@@ -90,7 +89,9 @@ def run_curve(args: argparse.Namespace, name: str, recipe: dict[str, Any], seed:
     for key, value in (recipe.get("set") or {}).items():
         command += ["--set", f"{key}={json.dumps(value)}"]
     print(f"== {name}, training seed {seed}: {recipe['steps']} steps {recipe.get('set') or {}}", flush=True)
-    subprocess.run(command, check=True, preexec_fn=die_with_parent)  # a stopped study stops its curve
+    code = run_stoppable(command)  # a stopped study lets its curve write its resume state, then stops
+    if code != 0:
+        raise SystemExit(f"{name}, training seed {seed}: learning_curve.py failed with exit code {code}")
 
 
 def summarize(recipes: dict[str, dict[str, Any]], out_dir: Path, seeds: list[int]) -> dict[str, Any]:

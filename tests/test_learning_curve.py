@@ -1,0 +1,78 @@
+"""A learning curve (benchmarks/recipe_study.py, the long runs' validation curves) stopped between two of its points
+keeps the training since the last point: the study lets its curve end the step and write its resume state, and the
+same command continues from there with the training's clock."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from smoke_project import REPO, make_smoke_project, run_tool, tool_env
+
+MAZE = "maze2d-umaze"
+
+
+def _maze_only(path: Path) -> None:
+    raw = yaml.safe_load(path.read_text())
+    raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={})
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+
+
+@pytest.mark.e2e
+def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -> None:
+    (tmp_path / "project").mkdir()
+    project = make_smoke_project(tmp_path / "project", run_tool, edit=_maze_only)
+    run_tool(["dvc", "repro", f"reference@{MAZE}"], project)
+    recipes = tmp_path / "recipes.yaml"
+    recipes.write_text("short: {steps: 3000}\n")
+    out_dir = tmp_path / "curves"
+    study = [sys.executable, str(REPO / "benchmarks" / "recipe_study.py"), str(project), "--task", MAZE,
+             "--recipes", str(recipes), "--training-seeds", "0", "--every", "1000", "--episodes", "2",
+             "--out-dir", str(out_dir), "--quiet"]  # fmt: skip
+    curve = out_dir / "short-seed0.jsonl"
+    resume = project / "models" / ".resume" / f"learning-curve-{MAZE}-recipe-short-seed0.pt"
+    clock = resume.with_name(f"{resume.stem}-clock.json")
+    log = tmp_path / "first.log"
+    with open(log, "w") as sink:  # its own process group, stopped as `long_run.sh stop` stops one: SIGTERM to it
+        first = subprocess.Popen(study, stdout=sink, stderr=subprocess.STDOUT, env=tool_env(), start_new_session=True)
+        deadline = time.monotonic() + 600
+        while _state_step(resume) != 1000:  # the first point and its state are written: the stop comes after them
+            assert first.poll() is None and time.monotonic() < deadline, log.read_text()
+            time.sleep(0.05)
+        time.sleep(1.0)  # some steps towards the next point
+        os.killpg(first.pid, signal.SIGTERM)
+        assert first.wait(timeout=120) == 128 + signal.SIGTERM, log.read_text()
+
+    stops = re.findall(r"SIGTERM: stopping after step (\d+),", log.read_text())
+    assert len(stops) == 1, log.read_text()  # the curve took the stop once, ended its step and wrote its state
+    stopped = int(stops[0])
+    assert 1000 < stopped < 3000
+    assert _state_step(resume) == stopped
+    kept = json.loads(clock.read_text())
+    point = json.loads(curve.read_text())
+    assert kept["step"] == stopped and kept["train_cpu_s"] > point["train_cpu_s"]
+
+    again = subprocess.run(study, capture_output=True, text=True, env=tool_env())
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert f"resuming training from step {stopped} " in again.stdout + again.stderr
+    points = [json.loads(line) for line in curve.read_text().splitlines()]
+    assert [p["step"] for p in points] == [1000, 2000, 3000]
+    assert points[1]["train_cpu_s"] > kept["train_cpu_s"]  # the clock went on from the stop, not from the point
+    assert not resume.exists() and not clock.exists()
+
+
+def _state_step(path: Path) -> int:
+    """The step of the resume state at ``path``, or -1 where there is none (yet)."""
+    try:
+        return torch.load(path, weights_only=False)["step"]
+    except (FileNotFoundError, EOFError, RuntimeError):  # not written yet, or being replaced
+        return -1
