@@ -1,5 +1,5 @@
 """A child started with ``die_with_parent`` does not outlive its parent (a stopped study or sweep worker leaves
-nothing training on)."""
+nothing training on), and one run by ``run_stoppable`` has a stop once and is let finish."""
 
 from __future__ import annotations
 
@@ -51,3 +51,41 @@ def test_a_child_dies_with_its_parent_and_an_untied_one_lives_on() -> None:
         assert untied_alive  # the failure die_with_parent prevents: an orphan that trains on
     finally:
         os.kill(untied, signal.SIGKILL)
+
+
+STOPPABLE = """
+import sys
+from adaptdiffuser.tooling.processes import run_stoppable
+sys.exit(run_stoppable([sys.executable, "-c", sys.argv[1], sys.argv[2]]))
+"""
+
+# a child that counts the stops it receives and takes a while to go, as a training step ends and writes its state
+SLOW_TO_STOP = """
+import signal, sys, time
+from pathlib import Path
+out = Path(sys.argv[1])
+stops = []
+signal.signal(signal.SIGTERM, lambda signum, frame: stops.append(signum))
+out.with_suffix(".ready").write_text("")
+while not stops:
+    time.sleep(0.01)
+time.sleep(1.0)  # a second stop would arrive meanwhile
+out.write_text(str(len(stops)))
+sys.exit(143)
+"""
+
+
+@pytest.mark.parametrize("to", ["parent", "group"])
+def test_a_stop_reaches_the_child_once_and_the_parent_waits_for_it(to: str, tmp_path) -> None:
+    out = tmp_path / "stops.txt"
+    parent = subprocess.Popen([sys.executable, "-c", STOPPABLE, SLOW_TO_STOP, str(out)], start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not out.with_suffix(".ready").exists():
+        assert parent.poll() is None and time.monotonic() < deadline
+        time.sleep(0.01)
+    if to == "parent":  # `kill PID` of a study
+        parent.send_signal(signal.SIGTERM)
+    else:  # `long_run.sh stop`: the whole process group
+        os.killpg(parent.pid, signal.SIGTERM)
+    assert parent.wait(timeout=30) == 128 + signal.SIGTERM
+    assert out.read_text() == "1"  # the child had its one stop and finished before the parent went
