@@ -3,7 +3,8 @@
 # evolves a Maze2D task), one after the other in this folder: `plans`, then the author's `rollouts`. The recipe is
 # a generic key (evolution.generate.recipe), so the second pass reruns the phases only: phase 0 and phase 1's
 # equal-compute control are the first pass's (phase k's control starts from phase k-1: that recipe's). Each pass's
-# summary goes to metrics/science/<task>.json (plans) and metrics/science/<task>-rollouts.json; params.yaml is left
+# summary goes to metrics/science/<task>.json (plans) and metrics/science/<task>-rollouts.json, its per-seed task
+# metrics (metrics/tasks/) to metrics/science/<task>/ and <task>-rollouts/; params.yaml is left
 # as the profile wrote it. Rerunning the script after any stop continues where it stopped: DVC skips or restores
 # (run cache) the trained models of both recipes, training resumes from its checkpoint, and the uncached stages
 # (discrimination, evaluations: minutes) rerun. Long: run it in a pinned clone,
@@ -17,9 +18,13 @@ for recipe in plans rollouts; do
   echo "== $(date -u +%FT%TZ) $task: evolution.generate.recipe=$recipe"
   adaptdiffuser set "evolution.generate.recipe=$recipe"
   dvc repro
-  out="metrics/science/$task.json"
-  [ "$recipe" = plans ] || out="metrics/science/$task-$recipe.json"
-  cp metrics/summary.json "$out.tmp"
-  mv "$out.tmp" "$out"   # whole or absent
+  name=$task
+  [ "$recipe" = plans ] || name=$task-$recipe
+  cp metrics/summary.json "metrics/science/$name.json.tmp"
+  mv "metrics/science/$name.json.tmp" "metrics/science/$name.json"   # whole or absent
+  # the pass's per-seed metrics beside its summary (the next pass rewrites metrics/tasks/): what pools seeds run
+  # apart (adaptdiffuser pool)
+  rm -rf "metrics/science/$name.tmp" && cp -r metrics/tasks "metrics/science/$name.tmp"
+  rm -rf "metrics/science/$name" && mv "metrics/science/$name.tmp" "metrics/science/$name"
 done
 adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"

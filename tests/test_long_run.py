@@ -18,6 +18,8 @@ import torch
 import yaml
 from smoke_project import REPO, make_smoke_project, run_tool
 
+from adaptdiffuser.stages.pool import summary_of
+
 SCRIPT = str(REPO / "scripts" / "long_run.sh")
 MAZE = "maze2d-umaze"
 
@@ -150,7 +152,10 @@ def test_science_maze_runs_both_recipes_on_one_phase0_and_one_set_of_controls(tm
     second = json.loads((science / f"{MAZE}-rollouts.json").read_text())[MAZE]
     assert first["phase_0"] == second["phase_0"]  # one phase 0 and one control, scored on the same episodes
     assert first["phase_1"]["control"]["score_mean"] == second["phase_1"]["control"]["score_mean"]
-    assert yaml.safe_load((project / "params.yaml").read_text())["evolution"]["generate"]["recipe"] == "plans"
+    raw = yaml.safe_load((project / "params.yaml").read_text())
+    assert raw["evolution"]["generate"]["recipe"] == "plans"
+    for name, summary in ((MAZE, first), (f"{MAZE}-rollouts", second)):
+        assert summary_of(raw, science / name)[MAZE] == summary  # each pass's per-seed metrics, kept beside it
     # run again (as after a stop): no training reruns (DVC's run cache restores the models of each recipe), the
     # uncached evaluations that rerun give the same summaries
     again = run_tool(["bash", "scripts/science_maze.sh"], project)

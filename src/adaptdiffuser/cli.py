@@ -471,6 +471,20 @@ def gains(
 
 
 @app.command()
+def pool(
+    runs: Annotated[list[Path], typer.Argument(help="saved runs (bash scripts/long_run.sh save) differing in seeds")],
+    into: Annotated[Path, typer.Option(help="folder for the pooled run (replaced whole)")],
+) -> None:
+    """Pool saved runs of one profile that differ only in their training seeds (a science profile run one seed at a
+    time) into the metrics and summaries one run over all their seeds writes; then `adaptdiffuser gains
+    INTO/metrics/science/<name>.json` tables them."""
+    from adaptdiffuser.stages.pool import pool_runs
+
+    for line in _guarded(lambda: pool_runs(runs, into)):
+        typer.echo(line)
+
+
+@app.command()
 def times() -> None:
     """How long each stage of this pipeline run took (this commit and params.yaml), from its MLflow runs."""
     from adaptdiffuser.tooling.mlflow_logging import stage_times

@@ -79,6 +79,16 @@ def task_phases(params: Params, task: str) -> list[int]:
 
 
 def run_summarize(params: Params, root: Path) -> dict:
+    """The summary of :func:`build_summary`, written to ``metrics/summary.json`` and logged to MLflow (a run per
+    task)."""
+    summary = build_summary(params, root)
+    write_json(root / SUMMARY, summary)
+    for task, entry in summary.items():
+        log_evolution(task, entry, root)
+    return summary
+
+
+def build_summary(params: Params, root: Path) -> dict:
     """``{task: {"reference": {...}, "dataset": {...}?, "unseen_task"?, "phase_k": {score_mean, score_stderr, ...,
     gain_mean?, gain_stderr?, <unseen task>?, "unseen_gain"?, "control"?, "discriminator"?, "per_seed"}}}``: each
     phase's evaluation metrics; the task's reference constants (``reference``: R_min, R_max, and D4RL's where the family
@@ -125,9 +135,6 @@ def run_summarize(params: Params, root: Path) -> dict:
             phase["per_seed"] = _per_seed(metrics, control)
             entry[f"phase_{k}"] = phase
         summary[task] = entry
-    write_json(root / SUMMARY, summary)
-    for task, entry in summary.items():
-        log_evolution(task, entry, root)
     return summary
 
 

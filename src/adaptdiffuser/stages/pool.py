@@ -1,0 +1,190 @@
+"""Training seeds run apart, pooled: the saved runs (``long_run.sh save`` folders) of one profile that differ only in
+``seeds``, merged into the metrics and summaries one run over all their seeds writes.
+
+A science profile's three seeds may take longer than a machine lasts; run one seed at a time
+(``long_run.sh start ... --set 'seeds=[1]'``), save each, and pool them. A training seed's training, generation and
+evaluation depend on that seed alone (``seeding.training_seed``), and every metrics file holds each seed's metrics
+beside their aggregate (``seed_metrics.over_seeds``), so the pooled files are the ones the three-seed run writes.
+Each set of task metrics a run holds is pooled: ``metrics/tasks/`` (its last pass) and every per-pass copy under
+``metrics/science/<name>/`` (``scripts/science_maze.sh``: one a recipe), each with its summary.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from adaptdiffuser.config import params_from_dict
+from adaptdiffuser.errors import StageError
+from adaptdiffuser.io import atomic_dir, write_json
+from adaptdiffuser.layout import SUMMARY
+from adaptdiffuser.seed_metrics import over_seeds
+from adaptdiffuser.stages.summarize import build_summary
+
+TASKS_SET = "tasks"  # metrics/tasks/: the run's own (its last pass)
+
+
+@dataclass(frozen=True)
+class SavedRun:
+    """One saved run: its folder, params (as written), training seeds and the digest of each task's code."""
+
+    folder: Path
+    raw: dict[str, Any]
+    seeds: tuple[int, ...]
+    code: dict[str, str]
+
+
+def load_run(folder: Path) -> SavedRun:
+    """A ``long_run.sh save`` folder; a clear error for a folder that is not one."""
+    params_path, lock_path = folder / "params.yaml", folder / "dvc.lock"
+    for path in (params_path, lock_path, folder / "metrics"):
+        if not path.exists():
+            raise StageError(f"{folder} is not a saved run: it has no {path.name} (bash scripts/long_run.sh save)")
+    raw = yaml.safe_load(params_path.read_text())
+    seeds = tuple(params_from_dict(raw).seeds)
+    code: dict[str, str] = {}
+    for stage in (yaml.safe_load(lock_path.read_text()) or {}).get("stages", {}).values():
+        for dep in stage.get("deps", []):
+            if dep["path"].startswith("code/"):
+                code[dep["path"]] = dep["md5"]
+    return SavedRun(folder, raw, seeds, code)
+
+
+def _first_difference(a: Any, b: Any, key: str = "") -> str | None:
+    """The dotted key of the first setting where ``a`` and ``b`` differ (``""`` for the whole), or None."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for name in sorted(set(a) | set(b), key=str):
+            inner = _first_difference(a.get(name), b.get(name), f"{key}.{name}" if key else str(name))
+            if inner is not None:
+                return inner
+        return None
+    return None if a == b else key
+
+
+def check_poolable(runs: list[SavedRun]) -> None:
+    """Runs pool only when their params differ in ``seeds`` alone, no seed is in two of them and their tasks ran
+    the same code; a one-line error naming the first that does not hold."""
+    if len(runs) < 2:
+        raise StageError("pooling needs two saved runs or more")
+    first = runs[0]
+    owner = {seed: first.folder for seed in first.seeds}
+    for run in runs[1:]:
+        key = _first_difference({**first.raw, "seeds": None}, {**run.raw, "seeds": None})
+        if key is not None:
+            raise StageError(f"{run.folder} and {first.folder} differ in {key!r}, not only in seeds: they do not pool")
+        for path in sorted(set(first.code) & set(run.code)):
+            if first.code[path] != run.code[path]:
+                raise StageError(f"{run.folder} and {first.folder} ran other code ({path} differs): they do not pool")
+        for seed in run.seeds:
+            if seed in owner:
+                raise StageError(f"training seed {seed} is in both {owner[seed]} and {run.folder}")
+            owner[seed] = run.folder
+
+
+def metric_sets(folder: Path) -> dict[str, Path]:
+    """A saved run's sets of task metrics, by name: ``tasks`` (``metrics/tasks/``) and ``science/<name>`` for each
+    per-pass copy (a folder under ``metrics/science/`` whose task folders hold a ``phase0.json``)."""
+    sets = {TASKS_SET: folder / "metrics" / "tasks"} if (folder / "metrics" / "tasks").is_dir() else {}
+    science = folder / "metrics" / "science"
+    if science.is_dir():
+        for path in sorted(science.iterdir()):
+            if path.is_dir() and any(path.glob("*/phase0.json")):
+                sets[f"science/{path.name}"] = path
+    return sets
+
+
+def pool_file(files: list[Path]) -> dict[str, Any]:
+    """One metrics file of several runs as one run over all their seeds writes it; a file without seeds (the
+    reference) must be the same in every run."""
+    contents = [json.loads(path.read_text()) for path in files]
+    if not all("seeds" in content for content in contents):
+        if any(content != contents[0] for content in contents[1:]):
+            raise StageError(f"{files[0].name} differs between the runs ({files[0]}, ...): they do not pool")
+        return contents[0]
+    per_seed = {int(seed): m for content in contents for seed, m in content["seeds"].items()}
+    return over_seeds({seed: per_seed[seed] for seed in sorted(per_seed)})
+
+
+def pool_set(folders: list[Path], into: Path, committed: dict[str, bytes] | None = None) -> list[str]:
+    """Every metrics file that all ``folders`` hold (``<task>/<name>.json``), pooled into ``into``, and each file
+    of ``committed`` (relative path -> content) that none of them holds, as it is there; returns the files some runs
+    lack (left out)."""
+    held = [{path.relative_to(folder).as_posix() for path in folder.glob("*/*.json")} for folder in folders]
+    common = set.intersection(*held)
+    for rel in sorted(common):
+        write_json(into / rel, pool_file([folder / rel for folder in folders]))
+    for rel, content in sorted((committed or {}).items()):
+        if rel not in set.union(*held):
+            (into / rel).parent.mkdir(parents=True, exist_ok=True)
+            (into / rel).write_bytes(content)
+    return sorted(set.union(*held) - common)
+
+
+def committed_task_metrics(repo: Path, commit: str | None) -> dict[str, bytes]:
+    """The files under ``metrics/tasks/`` of ``commit`` in the git repository ``repo`` (relative to it), which
+    ``long_run.sh save`` leaves out of a save when the run wrote them unchanged (a reference the commit holds); none
+    when the commit is not there."""
+    if not commit:
+        return {}
+    git = ["git", "-C", str(repo)]
+    listed = subprocess.run([*git, "ls-tree", "-r", "--name-only", commit, "metrics/tasks/"], capture_output=True)
+    if listed.returncode != 0:
+        return {}
+    files = {}
+    for name in listed.stdout.decode().split():
+        if name.endswith(".json"):
+            shown = subprocess.run([*git, "show", f"{commit}:{name}"], capture_output=True, check=True)
+            files[name.removeprefix("metrics/tasks/")] = shown.stdout
+    return files
+
+
+def summary_of(params_raw: dict[str, Any], tasks_dir: Path) -> dict[str, Any]:
+    """The summary the ``summarize`` stage writes for a folder of task metrics laid out as ``metrics/tasks/``."""
+    with tempfile.TemporaryDirectory() as scratch:
+        (Path(scratch) / "metrics").mkdir()
+        os.symlink(tasks_dir.resolve(), Path(scratch) / "metrics" / "tasks")
+        return build_summary(params_from_dict(params_raw), Path(scratch))
+
+
+def pool_runs(folders: list[Path], into: Path, repo: Path | None = None) -> list[str]:
+    """Pool the saved runs in ``folders`` into ``into`` (replaced whole, or left as it was on an error):
+    ``params.yaml`` with every seed, each set of task metrics all runs hold with its summary (``metrics/summary.json``
+    for ``metrics/tasks/``, ``metrics/science/<name>.json`` for a pass), and ``run.json`` naming the runs. Returns
+    one line per set pooled and per file left out."""
+    runs = [load_run(folder) for folder in folders]
+    check_poolable(runs)
+    seeds = sorted(seed for run in runs for seed in run.seeds)
+    raw = {**runs[0].raw, "seeds": seeds}
+    sets = [metric_sets(run.folder) for run in runs]
+    names = [name for name in sets[0] if all(name in s for s in sets)]
+    if not names:
+        raise StageError("the runs hold no set of task metrics in common (metrics/tasks/, metrics/science/<name>/)")
+    commits = [_run_record(run.folder).get("commit") for run in runs]
+    lines = []
+    with atomic_dir(into) as build:
+        (build / "params.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
+        write_json(build / "run.json", {"pooled": [_run_record(run.folder) for run in runs], "seeds": seeds})
+        for name in names:
+            target = build / "metrics" / name
+            committed = committed_task_metrics(repo or Path.cwd(), commits[0]) if name == TASKS_SET else {}
+            left_out = pool_set([s[name] for s in sets], target, committed if len(set(commits)) == 1 else {})
+            lines += [f"{name}: {rel} left out (not in every run)" for rel in left_out]
+            summary_path = SUMMARY if name == TASKS_SET else Path("metrics") / f"{name}.json"
+            try:
+                write_json(build / summary_path, summary_of(raw, target))
+                lines.append(f"{name}: seeds {seeds} pooled, summary {into / summary_path}")
+            except FileNotFoundError as missing:  # a phase not every run finished: its files pooled, no summary
+                lines.append(f"{name}: seeds {seeds} pooled, no summary ({missing})")
+    return lines
+
+
+def _run_record(folder: Path) -> dict[str, Any]:
+    record = json.loads((folder / "run.json").read_text()) if (folder / "run.json").exists() else {}
+    return {"folder": str(folder), **{key: record[key] for key in ("commit", "profile", "settings") if key in record}}
