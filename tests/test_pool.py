@@ -131,6 +131,9 @@ def test_a_file_the_saves_left_out_as_committed_comes_from_the_runs_commit(tasks
     repo = tmp_path / "repo"  # the repository the runs were pinned in, holding the reference they wrote unchanged
     (repo / "metrics" / "tasks" / TASK).mkdir(parents=True)
     shutil.copy2(REFERENCE, repo / "metrics" / "tasks" / TASK / "reference.json")
+    for other in (f"{TASK}/phase3.json", "another-task/reference.json"):  # none of the runs' seeds or tasks
+        (repo / "metrics" / "tasks" / other).parent.mkdir(parents=True, exist_ok=True)
+        (repo / "metrics" / "tasks" / other).write_text(json.dumps({"seeds": {"0": {}}} if "phase" in other else {}))
     git = ["git", "-C", str(repo), "-c", "user.email=t@example.com", "-c", "user.name=t"]
     for command in (["init", "-q"], ["add", "-A"], ["commit", "-qm", "reference"]):
         subprocess.run([*git, *command], check=True)
@@ -142,4 +145,6 @@ def test_a_file_the_saves_left_out_as_committed_comes_from_the_runs_commit(tasks
     into = tmp_path / "pooled"
     pool_runs(runs, into, repo=repo)
     assert (into / "metrics" / "tasks" / TASK / "reference.json").read_bytes() == REFERENCE.read_bytes()
+    assert not (into / "metrics" / "tasks" / TASK / "phase3.json").exists()
+    assert not (into / "metrics" / "tasks" / "another-task").exists()
     assert json.loads((into / "metrics" / "summary.json").read_text())[TASK]["phase_2"]["n_seeds"] == 2

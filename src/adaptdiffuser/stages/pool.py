@@ -114,15 +114,16 @@ def pool_file(files: list[Path]) -> dict[str, Any]:
 
 def pool_set(folders: list[Path], into: Path, committed: dict[str, bytes] | None = None) -> list[str]:
     """Every metrics file that all ``folders`` hold (``<task>/<name>.json``), pooled into ``into``, and each file
-    of ``committed`` (relative path -> content) that none of them holds, as it is there; returns the files some runs
-    lack (left out)."""
+    of ``committed`` (relative path -> content) of their tasks that none of them holds and that no seed wrote (a
+    reference), as it is there; returns the files some runs lack (left out)."""
     held = [{path.relative_to(folder).as_posix() for path in folder.glob("*/*.json")} for folder in folders]
     common = set.intersection(*held)
     for rel in sorted(common):
         write_json(into / rel, pool_file([folder / rel for folder in folders]))
+    tasks = {rel.split("/")[0] for rel in set.union(*held)}
     for rel, content in sorted((committed or {}).items()):
-        if rel not in set.union(*held):
-            (into / rel).parent.mkdir(parents=True, exist_ok=True)
+        if rel not in set.union(*held) and rel.split("/")[0] in tasks and "seeds" not in json.loads(content):
+            (into / rel).parent.mkdir(parents=True, exist_ok=True)  # a file of no seed's: the same for every run
             (into / rel).write_bytes(content)
     return sorted(set.union(*held) - common)
 
