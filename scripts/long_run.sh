@@ -182,11 +182,14 @@ EOF
     (cd "$folder" && git ls-files --others --modified -z -- metrics | sort -zu |
       while IFS= read -r -d '' file; do [ ! -f "$file" ] || cp --parents "$file" "$tmp/"; done)
     for file in params.yaml dvc.lock; do [ ! -f "$folder/$file" ] || cp "$folder/$file" "$tmp/$file"; done
-    python3 -c 'import json, sys; keys = "commit", "profile", "settings", "runs", "saved_at", "running"
+    # the CPU it ran on: fine-tuned results differ in their last digits from one CPU to another
+    cpu="$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -1), $(nproc) cores"
+    if grep -qw avx512f /proc/cpuinfo; then cpu="$cpu, AVX-512"; else cpu="$cpu, no AVX-512"; fi
+    python3 -c 'import json, sys; keys = "commit", "profile", "settings", "runs", "saved_at", "running", "cpu"
 record = dict(zip(keys, sys.argv[1:])) | {"settings": sys.argv[3].split(), "running": sys.argv[6] == "true"}
 print(json.dumps(record, indent=2))' \
       "$(git -C "$folder" rev-parse HEAD)" "$LONG_RUN_PROFILE" "${LONG_RUN_SETTINGS:-}" "${LONG_RUN_SCRIPT:-dvc repro}" \
-      "$(date -u +%FT%TZ)" "$running" > "$tmp/run.json"
+      "$(date -u +%FT%TZ)" "$running" "$cpu" > "$tmp/run.json"
     rm -rf "$dest.old"
     if [ -e "$dest" ]; then mv "$dest" "$dest.old"; fi
     mv "$tmp" "$dest"

@@ -97,6 +97,7 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     assert f"in {saved}" in out and not (saved / "stale.txt").exists()
     record = json.loads((saved / "run.json").read_text())
     assert record["commit"] == head and record["running"] is False and record["settings"] == [every]
+    assert record["cpu"].endswith(("AVX-512", "no AVX-512")) and f"{os.cpu_count()} cores" in record["cpu"]
     assert (saved / "params.yaml").read_bytes() == (folder / "params.yaml").read_bytes()
     assert (saved / "dvc.lock").read_bytes() == (folder / "dvc.lock").read_bytes()
     files = [path.relative_to(saved) for path in sorted((saved / "metrics").rglob("*")) if path.is_file()]

@@ -74,6 +74,18 @@ def test_seeds_run_apart_pool_into_the_three_seed_run(tasks: Path, tmp_path: Pat
         map(str, runs)
     )
     assert any("seeds [0, 1, 2] pooled, summary" in line for line in lines)
+    assert not any("CPUs" in line for line in lines)  # one CPU (the saved run's record names none)
+
+
+def test_seeds_from_two_cpus_are_pooled_and_said_so(tasks: Path, tmp_path: Path) -> None:
+    runs = [one_seed_run(tmp_path / f"seed{seed}", seed, tasks) for seed in (0, 1)]
+    for run, cpu in zip(runs, ("AMD EPYC, 2 cores, AVX-512", "AMD EPYC, 2 cores, no AVX-512"), strict=True):
+        (run / "run.json").write_text(json.dumps({"commit": "abc", "profile": "science-umaze", "cpu": cpu}))
+    lines = pool_runs(runs, tmp_path / "pooled")
+    cpus = ("AMD EPYC, 2 cores, AVX-512", "AMD EPYC, 2 cores, no AVX-512")
+    assert lines[0] == f"the seeds ran on 2 CPUs: {cpus[0]}; {cpus[1]} (say so beside the results)"
+    records = json.loads((tmp_path / "pooled" / "run.json").read_text())["pooled"]
+    assert [record["cpu"] for record in records] == ["AMD EPYC, 2 cores, AVX-512", "AMD EPYC, 2 cores, no AVX-512"]
 
 
 def test_a_phase_one_run_lacks_is_left_out_and_the_set_has_no_summary(tasks: Path, tmp_path: Path) -> None:

@@ -167,11 +167,15 @@ def pool_runs(folders: list[Path], into: Path, repo: Path | None = None) -> list
     names = [name for name in sets[0] if all(name in s for s in sets)]
     if not names:
         raise StageError("the runs hold no set of task metrics in common (metrics/tasks/, metrics/science/<name>/)")
-    commits = [_run_record(run.folder).get("commit") for run in runs]
-    lines = []
+    records = [_run_record(run.folder) for run in runs]
+    commits = [record.get("commit") for record in records]
+    cpus = sorted({record["cpu"] for record in records if "cpu" in record})
+    lines = (
+        [f"the seeds ran on {len(cpus)} CPUs: {'; '.join(cpus)} (say so beside the results)"] if len(cpus) > 1 else []
+    )
     with atomic_dir(into) as build:
         (build / "params.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
-        write_json(build / "run.json", {"pooled": [_run_record(run.folder) for run in runs], "seeds": seeds})
+        write_json(build / "run.json", {"pooled": records, "seeds": seeds})
         for name in names:
             target = build / "metrics" / name
             committed = committed_task_metrics(repo or Path.cwd(), commits[0]) if name == TASKS_SET else {}
@@ -188,4 +192,5 @@ def pool_runs(folders: list[Path], into: Path, repo: Path | None = None) -> list
 
 def _run_record(folder: Path) -> dict[str, Any]:
     record = json.loads((folder / "run.json").read_text()) if (folder / "run.json").exists() else {}
-    return {"folder": str(folder), **{key: record[key] for key in ("commit", "profile", "settings") if key in record}}
+    kept = ("commit", "profile", "settings", "cpu")
+    return {"folder": str(folder), **{key: record[key] for key in kept if key in record}}
