@@ -182,8 +182,9 @@ EOF
     (cd "$folder" && git ls-files --others --modified -z -- metrics | sort -zu |
       while IFS= read -r -d '' file; do [ ! -f "$file" ] || cp --parents "$file" "$tmp/"; done)
     for file in params.yaml dvc.lock; do [ ! -f "$folder/$file" ] || cp "$folder/$file" "$tmp/$file"; done
-    # the CPU it ran on: fine-tuned results differ in their last digits from one CPU to another
-    cpu="$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -1), $(nproc) cores"
+    # the CPU it ran on (fine-tuned results differ in their last digits from one CPU to another); its cores by
+    # getconf, not nproc, which counts OMP_NUM_THREADS
+    cpu="$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -1), $(getconf _NPROCESSORS_ONLN) cores"
     if grep -qw avx512f /proc/cpuinfo; then cpu="$cpu, AVX-512"; else cpu="$cpu, no AVX-512"; fi
     python3 -c 'import json, sys; keys = "commit", "profile", "settings", "runs", "saved_at", "running", "cpu"
 record = dict(zip(keys, sys.argv[1:])) | {"settings": sys.argv[3].split(), "running": sys.argv[6] == "true"}
