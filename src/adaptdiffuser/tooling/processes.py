@@ -35,12 +35,18 @@ def run_stoppable(command: Sequence[str]) -> int:
             if child is not None:
                 child.send_signal(signum)
 
+    def in_child() -> None:
+        die_with_parent()
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, STOPS)  # the child starts with the stops it inherited blocked
+
     previous = {signum: signal.signal(signum, forward) for signum in STOPS}
     try:
-        if not received:
-            child = subprocess.Popen(command, start_new_session=True, preexec_fn=die_with_parent)
-            if received:  # stopped while it started
-                child.send_signal(received[0])
+        signal.pthread_sigmask(signal.SIG_BLOCK, STOPS)  # a stop while the child starts waits until it is known
+        try:
+            if not received:
+                child = subprocess.Popen(command, start_new_session=True, preexec_fn=in_child)
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, STOPS)  # and is forwarded here
         code = child.wait() if child is not None else 0
     finally:
         for signum, handler in previous.items():
