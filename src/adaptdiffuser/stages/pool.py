@@ -117,15 +117,15 @@ def pool_set(folders: list[Path], into: Path, committed: dict[str, bytes] | None
     of ``committed`` (relative path -> content) of their tasks that none of them holds and that no seed wrote (a
     reference), as it is there; returns the files some runs lack (left out)."""
     held = [{path.relative_to(folder).as_posix() for path in folder.glob("*/*.json")} for folder in folders]
-    common = set.intersection(*held)
+    common, anywhere = set.intersection(*held), set.union(*held)
     for rel in sorted(common):
         write_json(into / rel, pool_file([folder / rel for folder in folders]))
-    tasks = {rel.split("/")[0] for rel in set.union(*held)}
+    tasks = {rel.split("/")[0] for rel in anywhere}
     for rel, content in sorted((committed or {}).items()):
-        if rel not in set.union(*held) and rel.split("/")[0] in tasks and "seeds" not in json.loads(content):
+        if rel not in anywhere and rel.split("/")[0] in tasks and "seeds" not in json.loads(content):
             (into / rel).parent.mkdir(parents=True, exist_ok=True)  # a file of no seed's: the same for every run
             (into / rel).write_bytes(content)
-    return sorted(set.union(*held) - common)
+    return sorted(anywhere - common)
 
 
 def committed_task_metrics(repo: Path, commit: str | None) -> dict[str, bytes]:
