@@ -21,9 +21,18 @@ task (``pretrain.lr=0.001``, ``model.dim=32``; the value is read as YAML), and `
 output and resume files, so variants of one task and seed never share a resume state
 (``benchmarks/recipe_study.py`` runs many).
 
+``--extend SHORTER.jsonl --extend-state STATE`` continues a shorter curve of the same settings instead of training
+from step 0: under a constant learning rate (``lr_schedule: constant``) the training to any step does not depend on
+how long the curve is, so the shorter curve's points are this curve's first points and its resume state (any of its
+states: the last, which a constant-rate curve keeps when it finishes, or an earlier one) is where this one starts.
+The state must be the shorter curve's: it is checked against the run id that curve had (its length and spacing read
+from its points), and refused in one line otherwise. The points must have been measured as this curve measures
+(episodes, seed): ``recipe_study.py``'s ``extends`` sees to it.
+
     python benchmarks/learning_curve.py WORKSPACE --task maze2d-medium --steps 40000 --every 4000
         [--seed 7] [--episodes 30] [--training-seed 0] [--set pretrain.lr=0.001 ...] [--label NAME]
         [--out curve.jsonl] [--keep-model DIR (models at every point)] [--device cpu] [--quiet]
+        [--extend SHORTER.jsonl --extend-state STATE]
 
 WORKSPACE is a pipeline folder whose task has its dataset and reference (`dvc repro reference@<task>`).
 """
@@ -36,6 +45,7 @@ import json
 import os
 import signal
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
 
@@ -45,6 +55,7 @@ import yaml
 
 from adaptdiffuser.checkpoint import ModelBundle, save_bundle
 from adaptdiffuser.config import params_from_dict, set_dotted
+from adaptdiffuser.config.sections import PretrainParams
 from adaptdiffuser.config.tasks import TaskParams
 from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.schema import Trajectories
@@ -58,7 +69,7 @@ from adaptdiffuser.stages.common import resolve_device
 from adaptdiffuser.stages.pretrain import phase0_model
 from adaptdiffuser.stages.training_data import expert_training_data, pretrain_config
 from adaptdiffuser.stages.value import fit_value
-from adaptdiffuser.training import fingerprint, train
+from adaptdiffuser.training import fingerprint, save_resume_state, train
 from adaptdiffuser.value_training import save_value
 
 
@@ -85,7 +96,13 @@ def main() -> None:
     )
     parser.add_argument("--device", default="auto")
     parser.add_argument("--quiet", action="store_true", help="no progress bar while training")
+    parser.add_argument("--extend", type=Path, default=None, metavar="SHORTER.jsonl",
+                        help="continue this shorter curve of the same settings (constant learning rate)")  # fmt: skip
+    parser.add_argument("--extend-state", type=Path, default=None, metavar="STATE",
+                        help="a resume state of the curve --extend names: where this curve starts")  # fmt: skip
     args = parser.parse_args()
+    if (args.extend is None) != (args.extend_state is None):
+        parser.error("--extend and --extend-state go together: the shorter curve's points and one of its states")
     root = args.workspace.resolve()
     raw = yaml.safe_load((root / "params.yaml").read_text())
     for override in args.overrides:
@@ -104,19 +121,31 @@ def main() -> None:
     ref = read_json(root / reference_path(task.name), f"reference of {task.name} (dvc repro reference@{task.name})")
     variant = f"{task.name}-{args.label}" if args.label else task.name
     out = args.out or root / f"learning_curve-{variant}-seed{args.training_seed}.jsonl"
-    points = [json.loads(line) for line in out.read_text().splitlines()] if out.exists() else []
-    done = {point["step"] for point in points}
-    resume = root / "models" / ".resume" / f"learning-curve-{variant}-seed{args.training_seed}.pt"
-    if args.steps in done:
-        resume.unlink(missing_ok=True)  # a curve killed after its last point and before removing its state
+    resume = resume_state_path(root, variant, args.training_seed)
+    cfg = dataclasses.replace(pretrain_config(task, args.training_seed), steps=args.steps, checkpoint_every=args.every)
+    if args.steps in {point["step"] for point in read_points(out)}:
+        if not keeps_final_state(cfg):
+            resume.unlink(missing_ok=True)  # a curve killed after its last point and before removing its state
         print(f"{out} already holds every point up to {args.steps} steps")
         return
+    if state_step(resume) is not None and state_step(resume) > args.steps:
+        parser.error(f"{resume} is at step {state_step(resume)}, past --steps {args.steps}: another curve's state")
 
     traj, expert = expert_training_data(task, root, args.training_seed)
-    cfg = dataclasses.replace(pretrain_config(task, args.training_seed), steps=args.steps, checkpoint_every=args.every)
     bundle, dataset = phase0_model(task, traj, cfg, {"expert": expert}, args.training_seed)
-    run_id = fingerprint(task.section("model"), task.section("diffusion"), dataclasses.asdict(cfg), expert)
+
+    def run_id_of(config: PretrainParams) -> str:
+        return fingerprint(task.section("model"), task.section("diffusion"), dataclasses.asdict(config), expert)
+
+    run_id = run_id_of(cfg)
     resume.parent.mkdir(parents=True, exist_ok=True)
+    if args.extend is not None:
+        try:
+            start_from_shorter(args.extend, args.extend_state, out, resume, cfg, run_id_of)
+        except ValueError as err:
+            parser.error(str(err))
+    points = read_points(out)
+    done = {point["step"] for point in points}
     files = TaskFiles(root, task.name, None, args.training_seed)
     value_fields: dict[str, float] = {}
     if family.uses_value_function:
@@ -179,8 +208,60 @@ def main() -> None:
         signal.signal(signum, keep_clock)
     train(bundle, dataset, cfg, device, resume, run_id, progress=not args.quiet, compiled=params.compile.training,
           on_checkpoint=evaluate)  # fmt: skip
-    resume.unlink(missing_ok=True)
+    if not keeps_final_state(cfg):  # a constant-rate curve keeps its last state: a longer curve can --extend it
+        resume.unlink(missing_ok=True)
     clock_path.unlink(missing_ok=True)
+
+
+def resume_state_path(root: Path, variant: str, training_seed: int) -> Path:
+    """Where the curve of ``variant`` (the task, with ``-label``) and training seed keeps its resume state."""
+    return root / "models" / ".resume" / f"learning-curve-{variant}-seed{training_seed}.pt"
+
+
+def read_points(path: Path) -> list[dict]:
+    """The points of a curve's JSON-lines file, none where it does not exist."""
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def keeps_final_state(cfg: PretrainParams) -> bool:
+    """Whether the training to any step is independent of the curve's length (a constant learning rate; warm-up
+    depends on the step alone), so that a finished curve's last state can start a longer one."""
+    return cfg.lr_schedule == "constant"
+
+
+def start_from_shorter(
+    shorter: Path, state_file: Path, out: Path, resume: Path, cfg: PretrainParams, run_id_of: Callable[..., str]
+) -> None:
+    """Start the curve of ``cfg`` (points ``out``, resume state ``resume``) from the shorter curve of the same
+    settings whose points are ``shorter``, at its resume state ``state_file``: the state tagged as this curve's, then
+    the points copied. Nothing where this curve has points already (it started: it resumes from its own state).
+    ValueError (one line) where it cannot continue: another learning-rate schedule, no points, a shorter curve no
+    shorter, a state the shorter curve did not write."""
+    if out.exists():
+        return
+    if not keeps_final_state(cfg):
+        raise ValueError(f"--extend needs lr_schedule constant, not {cfg.lr_schedule!r}: that rate depends on the "
+                         "curve's length, so a shorter curve's training is not this one's")  # fmt: skip
+    points = read_points(shorter)
+    if not points:
+        raise ValueError(f"--extend {shorter}: no points (the shorter curve's JSON lines)")
+    steps = sorted(point["step"] for point in points)
+    if steps[-1] >= cfg.steps:
+        raise ValueError(f"--extend {shorter} reaches step {steps[-1]}, not fewer than --steps {cfg.steps}")
+    state = torch.load(state_file, map_location="cpu", weights_only=False) if state_file.exists() else None
+    if state is None:
+        raise ValueError(f"--extend-state {state_file}: no such resume state")
+    shorter_id = run_id_of(dataclasses.replace(cfg, steps=steps[-1], checkpoint_every=steps[0]))
+    if state.get("run_id") != shorter_id or state["step"] > steps[-1]:
+        raise ValueError(f"--extend-state {state_file} was not written by the curve of {shorter} "
+                         f"({steps[-1]} steps every {steps[0]}) with these settings and data")  # fmt: skip
+    print(f"extending {shorter} ({steps[-1]} steps) from its state at step {state['step']}", flush=True)
+    clock = state_file.with_name(f"{state_file.stem}-clock.json")
+    if clock.exists():
+        write_json(resume.with_name(f"{resume.stem}-clock.json"), read_json(clock, "curve clock"))
+    save_resume_state(resume, state | {"run_id": run_id_of(cfg)})
+    with atomic_path(out) as tmp:  # the points last: a kill before leaves this curve unstarted, and it starts again
+        tmp.write_text("".join(json.dumps(point) + "\n" for point in points))
 
 
 def state_step(resume: Path) -> int | None:

@@ -6,6 +6,14 @@ A recipe file (YAML) gives each recipe its training steps and the task settings 
     today: {steps: 7000}
     cosine: {steps: 3500, set: {pretrain.lr: 0.001, pretrain.lr_schedule: cosine, pretrain.lr_warmup: 100}}
 
+A recipe with ``extends: NAME`` continues recipe NAME's curve (same ``set``, fewer steps, a constant learning rate)
+rather than training from step 0: it starts from NAME's points and its last resume state (a constant-rate curve
+keeps it when it finishes), so a longer look at a curve costs only the steps it adds
+(``learning_curve.py --extend``):
+
+    diffuser-40000: {steps: 40000, set: {pretrain.lr_schedule: constant}}
+    diffuser-80000: {steps: 80000, set: {pretrain.lr_schedule: constant}, extends: diffuser-40000}
+
 For every training seed and recipe, ``learning_curve.py`` runs in a process of its own (each pays its own compile,
 as a stage does) and evaluates every ``--every`` steps on validation episodes (``--seed``, never the evaluation
 seed). A stopped study goes on where it stopped: finished curves are kept, the unfinished one resumes. Then
@@ -34,6 +42,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from learning_curve import resume_state_path
 
 from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.io import write_json
@@ -51,9 +60,16 @@ def load_recipes(path: Path) -> Recipes:
     for name, recipe in recipes.items():
         if not isinstance(recipe, dict) or not isinstance(recipe.get("steps"), int) or recipe["steps"] <= 0:
             raise SystemExit(f"{path}: recipe {name!r} needs a positive integer 'steps'")
-        unknown = set(recipe) - {"steps", "set"}
+        unknown = set(recipe) - {"steps", "set", "extends"}
         if unknown:
-            raise SystemExit(f"{path}: recipe {name!r} has unknown keys {sorted(unknown)} (steps, set)")
+            raise SystemExit(f"{path}: recipe {name!r} has unknown keys {sorted(unknown)} (steps, set, extends)")
+        if "extends" in recipe:
+            shorter = recipes.get(recipe["extends"])
+            if not isinstance(shorter, dict) or recipe["extends"] == name:
+                raise SystemExit(f"{path}: recipe {name!r} extends {recipe['extends']!r}, not another recipe of it")
+            if (shorter.get("set") or {}) != (recipe.get("set") or {}) or shorter.get("steps", 0) >= recipe["steps"]:
+                raise SystemExit(f"{path}: recipe {name!r} extends {recipe['extends']!r}, which needs the same 'set' "
+                                 "and fewer steps")  # fmt: skip
     return recipes
 
 
@@ -86,6 +102,11 @@ def run_curve(args: argparse.Namespace, name: str, recipe: dict[str, Any], seed:
                "--label", f"recipe-{name}", "--out", str(out), "--device", args.device]  # fmt: skip
     if args.quiet:
         command.append("--quiet")
+    if "extends" in recipe:  # the shorter curve goes first in the study (it is trained there if it is not done)
+        run_curve(args, recipe["extends"], args.recipes_all[recipe["extends"]], seed)
+        variant = f"{args.task}-recipe-{recipe['extends']}"
+        command += ["--extend", str(curve_path(args.out_dir, recipe["extends"], seed)),
+                    "--extend-state", str(resume_state_path(args.workspace.resolve(), variant, seed))]  # fmt: skip
     for key, value in (recipe.get("set") or {}).items():
         command += ["--set", f"{key}={json.dumps(value)}"]
     print(f"== {name}, training seed {seed}: {recipe['steps']} steps {recipe.get('set') or {}}", flush=True)
@@ -167,7 +188,8 @@ def main() -> None:
     parser.add_argument("--only", nargs="+", metavar="RECIPE", help="train, summarize and draw only these recipes")
     parser.add_argument("--summary-only", action="store_true", help="summarize and draw what is there, train none")
     args = parser.parse_args()
-    recipes = select_recipes(load_recipes(args.recipes), args.only, args.recipes)
+    args.recipes_all = load_recipes(args.recipes)
+    recipes = select_recipes(args.recipes_all, args.only, args.recipes)
     args.out_dir.mkdir(parents=True, exist_ok=True)
     if not args.summary_only:
         for seed in args.training_seeds:  # every recipe on one seed before the next: comparable early

@@ -1,6 +1,7 @@
 """A learning curve (benchmarks/recipe_study.py, the long runs' validation curves) stopped between two of its points
 keeps the training since the last point: the study lets its curve end the step and write its resume state, and the
-same command continues from there with the training's clock."""
+same command continues from there with the training's clock. A longer curve of a constant learning rate extends a
+shorter one to the same weights as trained from step 0, and refuses a state that is not the shorter curve's."""
 
 from __future__ import annotations
 
@@ -68,6 +69,56 @@ def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -
     assert [p["step"] for p in points] == [1000, 2000, 3000]
     assert points[1]["train_cpu_s"] > kept["train_cpu_s"]  # the clock went on from the stop, not from the point
     assert not resume.exists() and not clock.exists()
+
+
+@pytest.mark.e2e
+def test_a_longer_curve_extends_a_shorter_one_to_the_weights_of_one_trained_from_zero(tmp_path: Path) -> None:
+    (tmp_path / "project").mkdir()
+    project = make_smoke_project(tmp_path / "project", run_tool, edit=_maze_only)
+    run_tool(["dvc", "repro", f"reference@{MAZE}"], project)
+    constant = "set: {pretrain.lr_schedule: constant}"
+    recipes = tmp_path / "recipes.yaml"
+    recipes.write_text(f"direct: {{steps: 1500, {constant}}}\nshort: {{steps: 1000, {constant}}}\n"
+                       f"long: {{steps: 1500, {constant}, extends: short}}\n")  # fmt: skip
+    out_dir = tmp_path / "curves"
+    study = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "recipe_study.py"), str(project), "--task", MAZE, "--recipes",
+         str(recipes), "--training-seeds", "0", "--every", "500", "--episodes", "2", "--out-dir", str(out_dir),
+         "--quiet", "--only", "direct", "long"],
+        capture_output=True, text=True, env=tool_env(),
+    )  # fmt: skip
+    assert study.returncode == 0, study.stdout + study.stderr
+    assert "(1000 steps) from its state at step 1000" in study.stdout
+    assert study.stdout.count("resuming training from step 1000 ") == 1  # long, from short's state, not from 0
+
+    def points(name: str) -> list[dict]:
+        return [json.loads(line) for line in (out_dir / f"{name}-seed0.jsonl").read_text().splitlines()]
+
+    assert [p["step"] for p in points("long")] == [500, 1000, 1500]
+    assert points("long")[:2] == points("short")  # the shorter curve's points, trained once (--only trained it)
+    states = {
+        name: torch.load(
+            project / "models" / ".resume" / f"learning-curve-{MAZE}-recipe-{name}-seed0.pt", weights_only=False
+        )
+        for name in ("direct", "short", "long")
+    }  # kept: constant rate
+    assert [states[name]["step"] for name in ("direct", "short", "long")] == [1500, 1000, 1500]
+    for part in ("model", "ema"):
+        direct, long = states["direct"][part], states["long"][part]
+        assert direct.keys() == long.keys()
+        assert all(torch.equal(direct[key], long[key]) for key in direct)  # extended == trained from step 0
+    assert points("long")[2]["score_mean"] == points("direct")[2]["score_mean"]
+
+    refused = subprocess.run(  # a state of another curve (direct: 1500 steps) does not extend short's points
+        [sys.executable, str(REPO / "benchmarks" / "learning_curve.py"), str(project), "--task", MAZE,
+         "--steps", "2000", "--every", "500", "--episodes", "2", "--set", "pretrain.lr_schedule=constant",
+         "--label", "other", "--out", str(tmp_path / "other.jsonl"), "--extend", str(out_dir / "short-seed0.jsonl"),
+         "--extend-state", str(project / "models" / ".resume" / f"learning-curve-{MAZE}-recipe-direct-seed0.pt")],
+        capture_output=True, text=True, env=tool_env(),
+    )  # fmt: skip
+    assert refused.returncode == 2
+    assert "was not written by the curve of" in refused.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "other.jsonl").exists()
 
 
 def _state_step(path: Path) -> int:
