@@ -42,7 +42,6 @@ from typing import Any
 
 import numpy as np
 import yaml
-from learning_curve import resume_state_path
 
 from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.io import write_json
@@ -103,6 +102,8 @@ def run_curve(args: argparse.Namespace, name: str, recipe: dict[str, Any], seed:
     if args.quiet:
         command.append("--quiet")
     if "extends" in recipe:  # the shorter curve goes first in the study (it is trained there if it is not done)
+        from learning_curve import resume_state_path  # torch and the library: only where a curve extends another
+
         run_curve(args, recipe["extends"], args.recipes_all[recipe["extends"]], seed)
         variant = f"{args.task}-recipe-{recipe['extends']}"
         command += ["--extend", str(curve_path(args.out_dir, recipe["extends"], seed)),

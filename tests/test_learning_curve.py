@@ -127,3 +127,25 @@ def _state_step(path: Path) -> int:
         return torch.load(path, weights_only=False)["step"]
     except (FileNotFoundError, EOFError, RuntimeError):  # not written yet, or being replaced
         return -1
+
+
+@pytest.mark.parametrize(
+    ("recipes", "message"),
+    [
+        ("a: {steps: 100}\nb: {steps: 200, extends: c}\n", "recipe 'b' extends 'c', not another recipe of it"),
+        ("a: {steps: 100}\nb: {steps: 200, extends: b}\n", "recipe 'b' extends 'b', not another recipe of it"),
+        ("a: {steps: 300}\nb: {steps: 200, extends: a}\n", "which needs the same 'set' and fewer steps"),
+        ("a: {steps: 100}\nb: {steps: 200, set: {pretrain.lr: 0.001}, extends: a}\n", "needs the same 'set'"),
+    ],
+)
+def test_a_recipe_extends_only_a_shorter_one_of_the_same_settings(tmp_path: Path, recipes: str, message: str) -> None:
+    path = tmp_path / "recipes.yaml"
+    path.write_text(recipes)
+    study = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "recipe_study.py"), str(tmp_path), "--task", MAZE,
+         "--recipes", str(path), "--out-dir", str(tmp_path / "curves")],
+        capture_output=True, text=True, env=tool_env(),
+    )  # fmt: skip
+    assert study.returncode == 1
+    assert message in study.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "curves").exists()  # refused before anything is written
