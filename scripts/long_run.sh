@@ -3,16 +3,18 @@
 # on this repository cannot make them stale; the same one command continues a run after any interruption.
 #
 #   bash scripts/long_run.sh start FOLDER [--profile NAME] [--set KEY=VALUE ...] [--script FILE] [--commit REV]
-#                                         [--from REPO] [--venv VENV] [--foreground]
+#                                         [--from REPO] [--venv VENV] [--foreground] [--after OTHER]
 #       clone REPO (default: this repository) at REV (default: its HEAD) into FOLDER, install it there (or use VENV's
 #       packages with FOLDER/src first on PYTHONPATH), switch to profile NAME (default: the commit's params.yaml),
 #       set each KEY=VALUE in its params.yaml (`adaptdiffuser set`; --set repeats) and start `dvc repro` in the
 #       background (log: FOLDER/long_run.log), or FILE, a bash script of the clone that runs `dvc repro` itself and
-#       reruns cleanly (scripts/science_maze.sh: both Maze2D recipes)
-#   bash scripts/long_run.sh resume FOLDER [--foreground]
+#       reruns cleanly (scripts/science_maze.sh: both Maze2D recipes); with --after OTHER (a long run's folder), not
+#       now but once OTHER's run has finished, so the CPU goes from one run to the next; not at all if OTHER is
+#       stopped or fails first (`resume` then starts it)
+#   bash scripts/long_run.sh resume FOLDER [--foreground] [--after OTHER]
 #       continue where it stopped: DVC skips the stages that finished, training resumes from its last checkpoint
 #       (models/.resume/), an evaluation from its last finished training seed, the other stages rerun from their
-#       start (minutes at most)
+#       start (minutes at most); --after OTHER as for start
 #   bash scripts/long_run.sh status FOLDER
 #       the pinned commit, whether it runs, the stages left, the resume states and the log's last lines
 #   bash scripts/long_run.sh stop FOLDER
@@ -25,14 +27,14 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,24p' "$0" >&2; exit 2; }
+usage() { sed -n '4,27p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
 action=$1
 folder=$(realpath -m "$2")
 shift 2
-profile="" script="" commit="HEAD" source="$here" venv="" foreground=0 into="" settings=()
+profile="" script="" commit="HEAD" source="$here" venv="" foreground=0 into="" after="" settings=()
 while [ $# -gt 0 ]; do
   case $1 in
     --profile) profile=$2; shift 2 ;;
@@ -43,6 +45,7 @@ while [ $# -gt 0 ]; do
     --venv) venv=$(realpath "$2"); shift 2 ;;
     --foreground) foreground=1; shift ;;
     --into) into=$(realpath -m "$2"); shift 2 ;;
+    --after) after=$(realpath -m "$2"); shift 2 ;;
     *) die "unknown option $1" ;;
   esac
 done
@@ -57,10 +60,10 @@ group_alive() {  # whether a process of group $1 is alive (a zombie not yet reap
   return 1
 }
 
-running_pid() {  # the pid of the run in FOLDER if it is alive (a zombie not yet reaped is not)
-  [ -f "$folder/long_run.pid" ] || return 1
-  local pid state
-  pid=$(cat "$folder/long_run.pid")
+running_pid() {  # the pid of the run in FOLDER (or in folder $1) if it is alive (a zombie not yet reaped is not)
+  local run=${1:-$folder} pid state
+  [ -f "$run/long_run.pid" ] || return 1
+  pid=$(cat "$run/long_run.pid")
   kill -0 "$pid" 2>/dev/null || return 1
   state=$(sed 's/.*) //' "/proc/$pid/stat" 2>/dev/null | cut -d' ' -f1)
   [ "$state" != Z ] && echo "$pid"
@@ -78,42 +81,77 @@ environment() {  # the run's tools: the clone's own .venv, or VENV's with the cl
   unset MLFLOW_TRACKING_URI
 }
 
-launch() {
-  if pid=$(running_pid); then die "$folder is already running (pid $pid)"; fi
+launch() {  # its exit status goes to long_run.rc when it ends by itself (none when it is stopped or killed)
+  if pid=$(running_pid) && [ "$pid" != $$ ]; then die "$folder is already running (pid $pid)"; fi
   environment
   cd "$folder"
-  local run=(dvc repro)
+  rm -f long_run.rc long_run.after   # a waiter's note: this run is not waiting any more
+  local run=(dvc repro) rc=0
   if [ -n "${LONG_RUN_SCRIPT:-}" ]; then run=(bash "$LONG_RUN_SCRIPT"); fi
   echo "== $(date -u +%FT%TZ) ${run[*]} at $(git rev-parse --short HEAD)" >> long_run.log
   if [ "$foreground" = 1 ]; then
     echo $$ > long_run.pid
-    "${run[@]}" >> long_run.log 2>&1 || die "${run[*]} failed: see $folder/long_run.log"
+    "${run[@]}" >> long_run.log 2>&1 || rc=$?
+    echo "$rc" > long_run.rc
+    [ "$rc" = 0 ] || die "${run[*]} failed: see $folder/long_run.log"
   else
-    setsid nohup "${run[@]}" >> long_run.log 2>&1 < /dev/null &
+    setsid nohup bash -c '"$@"; echo $? > long_run.rc' long_run "${run[@]}" >> long_run.log 2>&1 < /dev/null &
     echo $! > long_run.pid
     echo "running in the background (pid $!): bash scripts/long_run.sh status $folder"
   fi
 }
 
+finished() {  # whether the long run in folder $1 ended by itself with exit status 0
+  [ "$(cat "$1/long_run.rc" 2>/dev/null)" = 0 ] && ! running_pid "$1" > /dev/null
+}
+
+check_after() {  # --after names another long run that runs or has finished (before anything is cloned)
+  [ -f "$after/.long_run.env" ] || die "--after $after is not a long run"
+  [ "$after" != "$folder" ] || die "--after $after is this run"
+  finished "$after" || running_pid "$after" > /dev/null ||
+    die "--after $after neither runs nor has finished (resume it, or run $folder without --after)"
+}
+
+launch_after() {  # launch once the run in $after has finished (a waiter in the background, its pid the run's)
+  if finished "$after"; then launch; return; fi
+  if pid=$(running_pid); then die "$folder is already running (pid $pid)"; fi
+  echo "$after" > "$folder/long_run.after"
+  setsid nohup bash "$0" _after "$folder" >> "$folder/long_run.log" 2>&1 < /dev/null &
+  echo $! > "$folder/long_run.pid"
+  echo "waiting in the background (pid $!) for $after to finish, then it runs: bash scripts/long_run.sh status $folder"
+}
+
 case $action in
   start)
     [ ! -e "$folder" ] || die "$folder exists: continue it with 'bash scripts/long_run.sh resume $folder'"
+    [ -z "$after" ] || check_after
     rev=$(git -C "$source" rev-parse --verify "$commit^{commit}") || die "no commit $commit in $source"
     [ -z "$script" ] || git -C "$source" cat-file -e "$rev:$script" 2>/dev/null || die "no script $script at $rev"
     git clone -q "$source" "$folder"
     git -C "$folder" checkout -q "$rev"
-    printf 'long_run.log\nlong_run.pid\n.long_run.env\n' >> "$folder/.git/info/exclude"
+    printf 'long_run.log\nlong_run.pid\nlong_run.rc\nlong_run.after\n.long_run.env\n' >> "$folder/.git/info/exclude"
     printf 'LONG_RUN_VENV=%q\nLONG_RUN_PROFILE=%q\nLONG_RUN_SCRIPT=%q\nLONG_RUN_SETTINGS=%q\n' "$venv" \
       "${profile:-params.yaml of the commit}" "$script" "${settings[*]}" > "$folder/.long_run.env"
     if [ -z "$venv" ]; then (cd "$folder" && bash scripts/setup.sh); fi
     if [ -n "$profile" ]; then (environment && cd "$folder" && adaptdiffuser profile "$profile"); fi
     if [ ${#settings[@]} -gt 0 ]; then (environment && cd "$folder" && adaptdiffuser set "${settings[@]}"); fi
     echo "pinned $folder at $rev"
-    launch
+    if [ -n "$after" ]; then launch_after; else launch; fi
     ;;
   resume)
     [ -f "$folder/.long_run.env" ] || die "$folder is not a long run (start one with 'long_run.sh start')"
-    launch
+    if [ -n "$after" ]; then check_after && launch_after; else launch; fi
+    ;;
+  _after)  # the waiter of launch_after: in the background, in a session of its own whose leader it stays
+    other=$(cat "$folder/long_run.after")
+    while running_pid "$other" > /dev/null; do sleep "${LONG_RUN_POLL_S:-10}"; done
+    rm -f "$folder/long_run.after"
+    if ! finished "$other"; then
+      echo "== $(date -u +%FT%TZ) not started: $other was stopped or failed (resume this run to start it)"
+      exit 1
+    fi
+    echo "== $(date -u +%FT%TZ) $other has finished"
+    exec bash "$0" resume "$folder" --foreground
     ;;
   status)
     [ -f "$folder/.long_run.env" ] || die "$folder is not a long run"
@@ -123,7 +161,9 @@ case $action in
     echo "profile: $LONG_RUN_PROFILE${LONG_RUN_SETTINGS:+, set: $LONG_RUN_SETTINGS}"
     echo "runs: ${LONG_RUN_SCRIPT:-dvc repro}"
     total=$(dvc stage list --name-only | wc -l)
-    if pid=$(running_pid); then
+    if pid=$(running_pid) && [ -f long_run.after ]; then
+      echo "waiting: pid $pid, for $(cat long_run.after) to finish, then it runs; $total stages"
+    elif pid=$(running_pid); then
       # DVC holds the repository's lock while it runs: the stages it started, from its log
       started=$(grep -c "^Running stage" long_run.log || true)
       echo "running: pid $pid; $total stages, $started started by this run's log, the last: $(grep "^Running stage" long_run.log | tail -n 1)"

@@ -253,3 +253,46 @@ def _group(pgid: int) -> list[str]:
         if int(fields[2]) == pgid and fields[0] != "Z":
             members.append(stat.parent.name)
     return members
+
+
+def test_a_run_after_another_starts_when_that_one_has_finished_and_not_when_it_was_stopped(tmp_path: Path) -> None:
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    (repo / "slow.sh").write_text("sleep ${SLOW_S:-2}; date +%s.%N > ended.txt\n")
+    (repo / "mark.sh").write_text("date +%s.%N > started.txt\n")
+    for cmd in (["git", "init", "-q"], ["git", "add", "slow.sh", "mark.sh"]):
+        run_tool(cmd, repo)
+    run_tool(["git", "-c", "user.email=t@example.com", "-c", "user.name=t", "commit", "-qm", "work"], repo)
+    env = os.environ | {"LONG_RUN_POLL_S": "0.2"}
+
+    def long_run(*args: str, **extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", SCRIPT, *args], capture_output=True, text=True, env=env | extra, cwd=tmp_path)
+
+    def start(name: str, script: str, *after: str, **extra: str) -> subprocess.CompletedProcess:
+        venv = ["--venv", sys.prefix]
+        return long_run("start", str(tmp_path / name), "--from", str(repo), "--script", script, *venv, *after, **extra)
+
+    first, then = tmp_path / "first", tmp_path / "then"
+    assert start("first", "slow.sh").returncode == 0
+    queued = start("then", "mark.sh", "--after", str(first))
+    assert queued.returncode == 0 and "waiting in the background" in queued.stdout, queued.stderr
+    assert (then / "long_run.after").read_text().strip() == str(first)
+    assert not (then / "started.txt").exists()  # first still runs
+    _wait_for(lambda: (then / "long_run.rc").exists(), then)
+    assert (first / "long_run.rc").read_text() == "0\n" and (then / "long_run.rc").read_text() == "0\n"
+    assert float((then / "started.txt").read_text()) >= float((first / "ended.txt").read_text())
+    assert not (then / "long_run.after").exists()
+    after_finished = start("at-once", "mark.sh", "--after", str(first))  # a finished run: this one runs at once
+    assert "running in the background" in after_finished.stdout, after_finished.stderr
+
+    stopped, waiting = tmp_path / "stopped", tmp_path / "waiting"
+    assert start("stopped", "slow.sh", SLOW_S="60").returncode == 0
+    assert start("waiting", "mark.sh", "--after", str(stopped)).returncode == 0
+    assert long_run("stop", str(stopped)).returncode == 0
+    _wait_for(lambda: "not started:" in (waiting / "long_run.log").read_text(), waiting)
+    assert not (waiting / "started.txt").exists() and not (stopped / "long_run.rc").exists()
+    refused = start("never", "mark.sh", "--after", str(stopped))  # neither runs nor finished: refused, nothing made
+    assert refused.returncode == 2 and "neither runs nor has finished" in refused.stderr
+    assert not (tmp_path / "never").exists()
+    assert long_run("resume", str(waiting)).returncode == 0  # the queued run starts by hand
+    _wait_for(lambda: (waiting / "started.txt").exists(), waiting)
