@@ -12,6 +12,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 task=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve"])')
+tasks=$(python -c 'import yaml; print(" ".join(yaml.safe_load(open("params.yaml"))["tasks"]))')
 trap 'adaptdiffuser set evolution.generate.recipe=plans > /dev/null' EXIT   # params.yaml as the profile wrote it
 mkdir -p metrics/science
 for recipe in plans rollouts; do
@@ -22,9 +23,10 @@ for recipe in plans rollouts; do
   [ "$recipe" = plans ] || name=$task-$recipe
   cp metrics/summary.json "metrics/science/$name.json.tmp"
   mv "metrics/science/$name.json.tmp" "metrics/science/$name.json"   # whole or absent
-  # the pass's per-seed metrics beside its summary (the next pass rewrites metrics/tasks/): what pools seeds run
-  # apart (adaptdiffuser pool)
-  rm -rf "metrics/science/$name.tmp" && cp -r metrics/tasks "metrics/science/$name.tmp"
+  # the pass's per-seed metrics of the tasks it ran beside its summary (the next pass rewrites metrics/tasks/): what
+  # pools seeds run apart (adaptdiffuser pool)
+  rm -rf "metrics/science/$name.tmp" && mkdir "metrics/science/$name.tmp"
+  for ran in $tasks; do cp -r "metrics/tasks/$ran" "metrics/science/$name.tmp/"; done
   rm -rf "metrics/science/$name" && mv "metrics/science/$name.tmp" "metrics/science/$name"
 done
 adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"

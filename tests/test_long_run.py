@@ -157,6 +157,7 @@ def test_science_maze_runs_both_recipes_on_one_phase0_and_one_set_of_controls(tm
     assert raw["evolution"]["generate"]["recipe"] == "plans"
     for name, summary in ((MAZE, first), (f"{MAZE}-rollouts", second)):
         assert summary_of(raw, science / name)[MAZE] == summary  # each pass's per-seed metrics, kept beside it
+        assert [path.name for path in (science / name).iterdir()] == raw["tasks"]  # of the tasks it ran only
     # run again (as after a stop): no training reruns (DVC's run cache restores the models of each recipe), the
     # uncached evaluations that rerun give the same summaries
     again = run_tool(["bash", "scripts/science_maze.sh"], project)

@@ -160,3 +160,24 @@ def test_a_file_the_saves_left_out_as_committed_comes_from_the_runs_commit(tasks
     assert not (into / "metrics" / "tasks" / TASK / "phase3.json").exists()
     assert not (into / "metrics" / "tasks" / "another-task").exists()
     assert json.loads((into / "metrics" / "summary.json").read_text())[TASK]["phase_2"]["n_seeds"] == 2
+
+
+def test_a_pass_copy_of_another_tasks_committed_metrics_is_not_pooled(tasks: Path, tmp_path: Path) -> None:
+    runs = [one_seed_run(tmp_path / f"seed{seed}", seed, tasks) for seed in (0, 1)]
+    for run in runs:  # as scripts/science_maze.sh copied metrics/tasks/ whole at 25aa8f9
+        foreign = run / "metrics" / "science" / PASS / "maze2d-medium"  # not a task of these runs: seed 0 in each
+        foreign.mkdir(parents=True)
+        (foreign / "phase0.json").write_text(json.dumps(over_seeds({0: {"score_mean": 1.0, "n_episodes": 1}})))
+    into = tmp_path / "pooled"
+    pool_runs(runs, into)
+    assert (into / "metrics" / "science" / PASS / TASK / "phase0.json").exists()
+    assert not (into / "metrics" / "science" / PASS / "maze2d-medium").exists()
+
+
+def test_a_seed_in_two_runs_files_is_refused(tasks: Path, tmp_path: Path) -> None:
+    runs = [one_seed_run(tmp_path / f"seed{seed}", seed, tasks) for seed in (0, 1)]
+    path = runs[1] / "metrics" / "tasks" / TASK / "phase1.json"  # a file that says seed 0 in the run of seed 1
+    seed0 = json.loads((runs[0] / "metrics" / "tasks" / TASK / "phase1.json").read_text())
+    path.write_text(json.dumps(over_seeds({0: seed0["seeds"]["0"]})))
+    with pytest.raises(StageError, match="holds seed 0, which another run's file holds too"):
+        pool_runs(runs, tmp_path / "pooled")

@@ -108,15 +108,25 @@ def pool_file(files: list[Path]) -> dict[str, Any]:
         if any(content != contents[0] for content in contents[1:]):
             raise StageError(f"{files[0].name} differs between the runs ({files[0]}, ...): they do not pool")
         return contents[0]
-    per_seed = {int(seed): m for content in contents for seed, m in content["seeds"].items()}
+    per_seed: dict[int, Any] = {}
+    for path, content in zip(files, contents, strict=True):
+        for seed, metrics in content["seeds"].items():
+            if int(seed) in per_seed:
+                raise StageError(f"{path} holds seed {seed}, which another run's file holds too: they do not pool")
+            per_seed[int(seed)] = metrics
     return over_seeds({seed: per_seed[seed] for seed in sorted(per_seed)})
 
 
-def pool_set(folders: list[Path], into: Path, committed: dict[str, bytes] | None = None) -> list[str]:
-    """Every metrics file that all ``folders`` hold (``<task>/<name>.json``), pooled into ``into``, and each file
-    of ``committed`` (relative path -> content) of their tasks that none of them holds and that no seed wrote (a
-    reference), as it is there; returns the files some runs lack (left out)."""
-    held = [{path.relative_to(folder).as_posix() for path in folder.glob("*/*.json")} for folder in folders]
+def pool_set(folders: list[Path], into: Path, tasks: set[str], committed: dict[str, bytes] | None = None) -> list[str]:
+    """Every metrics file of the runs' ``tasks`` that all ``folders`` hold (``<task>/<name>.json``), pooled into
+    ``into``, and each file of ``committed`` (relative path -> content) of those tasks that none of them holds and
+    that no seed wrote (a reference), as it is there; returns the files some runs lack (left out). Another task's
+    files (a pass's copy of ``metrics/tasks/`` holds the commit's files of the tasks the run did not run) are not
+    the runs' own: they are not pooled."""
+    held = [
+        {rel for path in folder.glob("*/*.json") if (rel := path.relative_to(folder).as_posix()).split("/")[0] in tasks}
+        for folder in folders
+    ]
     common, anywhere = set.intersection(*held), set.union(*held)
     for rel in sorted(common):
         write_json(into / rel, pool_file([folder / rel for folder in folders]))
@@ -163,6 +173,7 @@ def pool_runs(folders: list[Path], into: Path, repo: Path | None = None) -> list
     check_poolable(runs)
     seeds = sorted(seed for run in runs for seed in run.seeds)
     raw = {**runs[0].raw, "seeds": seeds}
+    tasks = set(params_from_dict(raw).tasks)
     sets = [metric_sets(run.folder) for run in runs]
     names = [name for name in sets[0] if all(name in s for s in sets)]
     if not names:
@@ -179,7 +190,7 @@ def pool_runs(folders: list[Path], into: Path, repo: Path | None = None) -> list
         for name in names:
             target = build / "metrics" / name
             committed = committed_task_metrics(repo or Path.cwd(), commits[0]) if name == TASKS_SET else {}
-            left_out = pool_set([s[name] for s in sets], target, committed if len(set(commits)) == 1 else {})
+            left_out = pool_set([s[name] for s in sets], target, tasks, committed if len(set(commits)) == 1 else {})
             lines += [f"{name}: {rel} left out (not in every run)" for rel in left_out]
             summary_path = SUMMARY if name == TASKS_SET else Path("metrics") / f"{name}.json"
             try:
