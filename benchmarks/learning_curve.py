@@ -128,8 +128,8 @@ def main() -> None:
             resume.unlink(missing_ok=True)  # a curve killed after its last point and before removing its state
         print(f"{out} already holds every point up to {args.steps} steps")
         return
-    if state_step(resume) is not None and state_step(resume) > args.steps:
-        parser.error(f"{resume} is at step {state_step(resume)}, past --steps {args.steps}: another curve's state")
+    if (held := state_step(resume)) is not None and held > args.steps:
+        parser.error(f"{resume} is at step {held}, past --steps {args.steps}: another curve's state")
 
     traj, expert = expert_training_data(task, root, args.training_seed)
     bundle, dataset = phase0_model(task, traj, cfg, {"expert": expert}, args.training_seed)
