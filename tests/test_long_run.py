@@ -203,8 +203,9 @@ def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
     repo = tmp_path / "repo"
     repo.mkdir()
     # a run with a child process, as DVC starts its stages, that takes a while to go when told to (as a training
-    # stage ends its step and writes its resume state): stop waits for it
-    child = "trap 'sleep 2; echo saved > saved.txt; exit 143' TERM; while true; do sleep 0.1; done"
+    # stage ends its step and writes its resume state): stop waits for it. It says when its trap is set: a TERM
+    # before that would end it at once (the race CI once lost when the test paused the run too early)
+    child = "trap 'sleep 2; echo saved > saved.txt; exit 143' TERM; echo > trapped.txt; while true; do sleep 0.1; done"
     (repo / "work.sh").write_text(f"( {child} ) &\nwait\n")
     for cmd in (["git", "init", "-q"], ["git", "add", "work.sh"]):
         run_tool(cmd, repo)
@@ -214,7 +215,7 @@ def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
              tmp_path)  # fmt: skip
     pid = int((folder / "long_run.pid").read_text())
     deadline = time.monotonic() + 60
-    while len(_group(pid)) < 2:  # the script and its child
+    while len(_group(pid)) < 2 or not (folder / "trapped.txt").exists():  # the script and its child, trap set
         assert time.monotonic() < deadline, _group(pid)
         time.sleep(0.1)
 
