@@ -3,14 +3,16 @@
 # on this repository cannot make them stale; the same one command continues a run after any interruption.
 #
 #   bash scripts/long_run.sh start FOLDER [--profile NAME] [--set KEY=VALUE ...] [--script FILE] [--commit REV]
-#                                         [--from REPO] [--venv VENV] [--foreground] [--after OTHER]
+#                                         [--from REPO] [--venv VENV] [--foreground] [--after OTHER] [--restore SAVE]
 #       clone REPO (default: this repository) at REV (default: its HEAD) into FOLDER, install it there (or use VENV's
 #       packages with FOLDER/src first on PYTHONPATH), switch to profile NAME (default: the commit's params.yaml),
 #       set each KEY=VALUE in its params.yaml (`adaptdiffuser set`; --set repeats) and start `dvc repro` in the
 #       background (log: FOLDER/long_run.log), or FILE, a bash script of the clone that runs `dvc repro` itself and
 #       reruns cleanly (scripts/science_maze.sh: both Maze2D recipes); with --after OTHER (a long run's folder), not
 #       now but once OTHER's run has finished, so the CPU goes from one run to the next; not at all if OTHER is
-#       stopped or fails first (`resume` then starts it)
+#       stopped or fails first (`resume` then starts it); with --restore SAVE (a `save --carry` of a run of the same
+#       commit, profile and settings, perhaps on a machine that is gone), from what that run had carried: its
+#       training resume states and finished stages' outputs with its dvc.lock, so only what it had left runs
 #   bash scripts/long_run.sh resume FOLDER [--foreground] [--after OTHER]
 #       continue where it stopped: DVC skips the stages that finished, training resumes from its last checkpoint
 #       (models/.resume/), an evaluation from its last finished training seed, the other stages rerun from their
@@ -20,21 +22,24 @@
 #   bash scripts/long_run.sh stop FOLDER
 #       stop the run and everything it started (to free the CPU for other work); `resume` continues it, training
 #       from its last checkpoint
-#   bash scripts/long_run.sh save FOLDER [--into DIR]
+#   bash scripts/long_run.sh save FOLDER [--into DIR] [--carry PATH ...]
 #       copy what the run has measured so far (its metrics/ files that differ from the pinned commit's, params.yaml,
 #       dvc.lock, the commit) into DIR (default: metrics/runs/<FOLDER's name>; replaced whole if it holds this run's
-#       last save, refused if another run's), to commit before a session ends: its measurements outlive the machine
+#       last save, refused if another run's), to commit before a session ends: its measurements outlive the machine;
+#       --carry PATH (a file or folder of the run, e.g. models/.resume or models/TASK/phase0; repeats) copies it
+#       into DIR/carry/ too, so `start --restore DIR` continues the run on another machine (committed with the save:
+#       megabytes each, so carry the hours of training only)
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,27p' "$0" >&2; exit 2; }
+usage() { sed -n '4,33p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
 action=$1
 folder=$(realpath -m "$2")
 shift 2
-profile="" script="" commit="HEAD" source="$here" venv="" foreground=0 into="" after="" settings=()
+profile="" script="" commit="HEAD" source="$here" venv="" foreground=0 into="" after="" restore="" settings=() carry=()
 while [ $# -gt 0 ]; do
   case $1 in
     --profile) profile=$2; shift 2 ;;
@@ -46,6 +51,8 @@ while [ $# -gt 0 ]; do
     --foreground) foreground=1; shift ;;
     --into) into=$(realpath -m "$2"); shift 2 ;;
     --after) after=$(realpath -m "$2"); shift 2 ;;
+    --carry) carry+=("$2"); shift 2 ;;
+    --restore) restore=$(realpath -m "$2"); shift 2 ;;
     *) die "unknown option $1" ;;
   esac
 done
@@ -112,6 +119,17 @@ check_after() {  # --after names another long run that runs or has finished (bef
     die "--after $after neither runs nor has finished (resume it, or run $folder without --after)"
 }
 
+check_restore() {  # --restore names a save of a run of this commit, profile and settings that carried something
+  local record="$restore/run.json" theirs ours
+  [ -f "$record" ] || die "--restore $restore is not a long run's save (no run.json)"
+  [ -d "$restore/carry" ] && [ -f "$restore/dvc.lock" ] ||
+    die "--restore $restore carries nothing (save the run with --carry PATH)"
+  theirs=$(python3 -c 'import json, sys; r = json.load(open(sys.argv[1]))
+print(r["commit"], r["profile"], "|", *r["settings"])' "$record")
+  ours="$rev ${profile:-params.yaml of the commit} |${settings[*]:+ ${settings[*]}}"
+  [ "$theirs" = "$ours" ] || die "--restore $restore is another run's (commit, profile | settings: $theirs; this run: $ours)"
+}
+
 launch_after() {  # launch once the run in $after has finished (a waiter in the background, its pid the run's)
   if finished "$after"; then launch; return; fi
   if pid=$(running_pid); then die "$folder is already running (pid $pid)"; fi
@@ -127,6 +145,7 @@ case $action in
     [ -z "$after" ] || check_after
     rev=$(git -C "$source" rev-parse --verify "$commit^{commit}") || die "no commit $commit in $source"
     [ -z "$script" ] || git -C "$source" cat-file -e "$rev:$script" 2>/dev/null || die "no script $script at $rev"
+    [ -z "$restore" ] || check_restore
     git clone -q "$source" "$folder"
     git -C "$folder" checkout -q "$rev"
     printf 'long_run.log\nlong_run.pid\nlong_run.rc\nlong_run.after\n.long_run.env\n' >> "$folder/.git/info/exclude"
@@ -136,6 +155,26 @@ case $action in
     if [ -n "$profile" ]; then (environment && cd "$folder" && adaptdiffuser profile "$profile"); fi
     if [ ${#settings[@]} -gt 0 ]; then (environment && cd "$folder" && adaptdiffuser set "${settings[@]}"); fi
     echo "pinned $folder at $rev"
+    if [ -n "$restore" ]; then
+      # the saved lock first: a carried output of a stage it records as finished makes DVC skip that stage
+      cp "$restore/dvc.lock" "$folder/dvc.lock"
+      cp -r "$restore/carry/." "$folder/"
+      echo "restored from $restore: $(python3 -c 'import json, sys; print(*json.load(open(sys.argv[1]))["carried"])' \
+        "$restore/run.json") ($(find "$restore/carry" -type f | wc -l) files)"
+      # DVC counts an output that is not in its cache as changed: put each carried one that is as the lock records
+      # it there (an output that differs stays out, and its stage reruns)
+      (environment && cd "$folder" && python - <<'EOF'
+from dvc.repo import Repo
+
+with Repo(".") as repo:
+    for stage in repo.index.stages:
+        for out in stage.outs:
+            if out.use_cache and out.hash_info and out.exists and not out.changed_checksum() and out.changed_cache():
+                out.commit()
+                print(f"in DVC's cache: {out} ({stage.addressing})")
+EOF
+      )
+    fi
     if [ -n "$after" ]; then launch_after; else launch; fi
     ;;
   resume)
@@ -212,6 +251,10 @@ EOF
         "$dest/run.json" 2>/dev/null) || theirs="(no run.json)"
       [ "$theirs" = "$ours" ] || die "$dest holds other measurements (run: $theirs): save into a folder of its own, --into DIR"
     fi
+    for path in "${carry[@]}"; do   # inside the run, and there: refused before anything is written
+      case /$path/ in */../*|//*) die "--carry $path: not a path inside the run" ;; esac
+      [ -e "$folder/$path" ] || die "--carry $path: no such file or folder in $folder"
+    done
     running=false
     if running_pid > /dev/null; then running=true; fi
     # whole or absent: build beside the destination, then swap it in
@@ -222,15 +265,22 @@ EOF
     (cd "$folder" && git ls-files --others --modified -z -- metrics | sort -zu |
       while IFS= read -r -d '' file; do [ ! -f "$file" ] || cp --parents "$file" "$tmp/"; done)
     for file in params.yaml dvc.lock; do [ ! -f "$folder/$file" ] || cp "$folder/$file" "$tmp/$file"; done
+    # what it carries: whole files (a resume state is replaced by a rename, never rewritten in place), no atomic
+    # writes' hidden temporary files
+    [ ${#carry[@]} = 0 ] || mkdir "$tmp/carry"
+    for path in "${carry[@]}"; do
+      (cd "$folder" && find "$path" -type f ! -name '.*' -print0 |
+        while IFS= read -r -d '' file; do cp --parents "$file" "$tmp/carry/"; done)
+    done
     # the CPU it ran on (fine-tuned results differ in their last digits from one CPU to another); its cores by
     # getconf, not nproc, which counts OMP_NUM_THREADS
     cpu="$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -1), $(getconf _NPROCESSORS_ONLN) cores"
     if grep -qw avx512f /proc/cpuinfo; then cpu="$cpu, AVX-512"; else cpu="$cpu, no AVX-512"; fi
-    python3 -c 'import json, sys; keys = "commit", "profile", "settings", "runs", "saved_at", "running", "cpu"
+    python3 -c 'import json, sys; keys = "commit", "profile", "settings", "runs", "saved_at", "running", "cpu", "carried"
 record = dict(zip(keys, sys.argv[1:])) | {"settings": sys.argv[3].split(), "running": sys.argv[6] == "true"}
-print(json.dumps(record, indent=2))' \
+print(json.dumps(record | {"carried": sys.argv[8].split()}, indent=2))' \
       "$(git -C "$folder" rev-parse HEAD)" "$LONG_RUN_PROFILE" "${LONG_RUN_SETTINGS:-}" "${LONG_RUN_SCRIPT:-dvc repro}" \
-      "$(date -u +%FT%TZ)" "$running" "$cpu" > "$tmp/run.json"
+      "$(date -u +%FT%TZ)" "$running" "$cpu" "${carry[*]}" > "$tmp/run.json"
     rm -rf "$dest.old"
     if [ -e "$dest" ]; then mv "$dest" "$dest.old"; fi
     mv "$tmp" "$dest"

@@ -108,6 +108,56 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
         assert committed.returncode != 0 or committed.stdout != (folder / file).read_bytes()
 
 
+@pytest.mark.e2e
+def test_a_run_saved_with_what_it_carries_continues_where_its_machine_is_gone(tmp_path: Path) -> None:
+    (tmp_path / "project").mkdir()
+    project = make_smoke_project(tmp_path / "project", run_tool, edit=_phase0_of_one_task)
+    head = run_tool(["git", "rev-parse", "HEAD"], project).strip()
+    every = "pretrain.checkpoint_every=100"
+    pinned = ["--from", str(project), "--commit", head, "--set", every, "--venv", sys.prefix]
+    first = tmp_path / "first"
+    run_tool(["bash", SCRIPT, "start", str(first), *pinned], tmp_path)
+    _wait_for((first / "models" / ".resume" / f"{MAZE}-phase0-seed1.pt").exists, first)
+    run_tool(["bash", SCRIPT, "stop", str(first)], tmp_path)
+    (stopped,) = re.findall(r"SIGTERM: stopping after step (\d+),", (first / "long_run.log").read_text())
+    saved = tmp_path / "saved"
+    run_tool(["bash", SCRIPT, "save", str(first), "--into", str(saved), "--carry", "models/.resume"], tmp_path)
+    carried = sorted(path.name for path in (saved / "carry" / "models" / ".resume").iterdir())
+    assert f"{MAZE}-phase0-seed0.pt" in carried and f"{MAZE}-phase0-seed1.pt" in carried
+    assert not [name for name in carried if name.startswith(".")]  # no atomic write's temporary file
+    assert json.loads((saved / "run.json").read_text())["carried"] == ["models/.resume"]
+    shutil.rmtree(first)  # the machine is gone: only the committed save is left
+
+    # refused in one line before anything is cloned: another run's save, a save that carries nothing, a bad path
+    second = tmp_path / "second"
+    other = subprocess.run(["bash", SCRIPT, "start", str(second), *pinned[:4], "--restore", str(saved)],
+                           capture_output=True, text=True)  # fmt: skip
+    assert other.returncode == 2 and "is another run's" in other.stderr and not second.exists()
+    shutil.copytree(saved, tmp_path / "bare", ignore=shutil.ignore_patterns("carry"))
+    bare = subprocess.run(["bash", SCRIPT, "start", str(second), *pinned, "--restore", str(tmp_path / "bare")],
+                          capture_output=True, text=True)  # fmt: skip
+    assert bare.returncode == 2 and "carries nothing" in bare.stderr and not second.exists()
+
+    out = run_tool(["bash", SCRIPT, "start", str(second), *pinned, "--restore", str(saved), "--foreground"], tmp_path)
+    assert f"restored from {saved}: models/.resume (" in out
+    log = (second / "long_run.log").read_text()
+    # neither seed starts again: the finished one from its last step, the stopped one from where it stopped
+    assert "resuming training from step 600 " in log and f"resuming training from step {stopped} " in log
+
+    # a finished stage's outputs carried: DVC skips it on the next machine, and what follows scores the same
+    again = tmp_path / "again"
+    phase0 = f"models/{MAZE}/phase0"
+    run_tool(["bash", SCRIPT, "save", str(second), "--into", str(again), "--carry", phase0], tmp_path)
+    third = tmp_path / "third"
+    out = run_tool(["bash", SCRIPT, "start", str(third), *pinned, "--restore", str(again), "--foreground"], tmp_path)
+    assert f"in DVC's cache: {phase0} (pretrain@{MAZE})" in out
+    log = (third / "long_run.log").read_text()
+    assert f"Running stage 'collect@{MAZE}'" in log and f"Running stage 'pretrain@{MAZE}'" not in log
+    assert f"Running stage 'evaluate-phase0@{MAZE}'" in log
+    unseen = f"metrics/tasks/{MAZE}/phase0-unseen.json"
+    assert (third / unseen).read_bytes() == (second / unseen).read_bytes()
+
+
 def _wait_for(condition: Callable[[], bool], folder: Path, timeout_s: float = 600.0) -> None:
     """Poll ``condition`` until it holds; fail with the run's log after ``timeout_s``."""
     deadline = time.monotonic() + timeout_s
