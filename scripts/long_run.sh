@@ -32,7 +32,7 @@
 set -euo pipefail
 here="$(cd "$(dirname "$0")/.." && pwd)"
 
-usage() { sed -n '4,33p' "$0" >&2; exit 2; }
+usage() { sed -n '4,31p' "$0" >&2; exit 2; }
 die() { echo "long_run: $*" >&2; exit 2; }
 
 [ $# -ge 2 ] || usage
@@ -56,6 +56,8 @@ while [ $# -gt 0 ]; do
     *) die "unknown option $1" ;;
   esac
 done
+[ -z "$restore" ] || [ "$action" = start ] || die "--restore is for start (a new clone; a failed restore: remove FOLDER, start again)"
+[ ${#carry[@]} = 0 ] || [ "$action" = save ] || die "--carry is for save"
 
 group_alive() {  # whether a process of group $1 is alive (a zombie not yet reaped is not)
   local stat line fields
@@ -122,11 +124,14 @@ check_after() {  # --after names another long run that runs or has finished (bef
 check_restore() {  # --restore names a save of a run of this commit, profile and settings that carried something
   local record="$restore/run.json" theirs ours
   [ -f "$record" ] || die "--restore $restore is not a long run's save (no run.json)"
-  [ -d "$restore/carry" ] && [ -f "$restore/dvc.lock" ] ||
+  [ -n "$(find "$restore/carry" -type f -print -quit 2>/dev/null)" ] ||
     die "--restore $restore carries nothing (save the run with --carry PATH)"
   theirs=$(python3 -c 'import json, sys; r = json.load(open(sys.argv[1]))
-print(r["commit"], r["profile"], "|", *r["settings"])' "$record")
-  ours="$rev ${profile:-params.yaml of the commit} |${settings[*]:+ ${settings[*]}}"
+print(r["commit"], r["profile"], "|", *sorted(r["settings"]))' "$record" 2>/dev/null) ||
+    die "--restore $restore: its run.json is not a long run's record"
+  # `save` records the settings split on spaces: compare them so, in any order
+  ours=$(python3 -c 'import sys; print(sys.argv[1], sys.argv[2], "|", *sorted(" ".join(sys.argv[3:]).split()))' \
+    "$rev" "${profile:-params.yaml of the commit}" "${settings[@]}")
   [ "$theirs" = "$ours" ] || die "--restore $restore is another run's (commit, profile | settings: $theirs; this run: $ours)"
 }
 
@@ -157,7 +162,7 @@ case $action in
     echo "pinned $folder at $rev"
     if [ -n "$restore" ]; then
       # the saved lock first: a carried output of a stage it records as finished makes DVC skip that stage
-      cp "$restore/dvc.lock" "$folder/dvc.lock"
+      [ ! -f "$restore/dvc.lock" ] || cp "$restore/dvc.lock" "$folder/dvc.lock"
       cp -r "$restore/carry/." "$folder/"
       echo "restored from $restore: $(python3 -c 'import json, sys; print(*json.load(open(sys.argv[1]))["carried"])' \
         "$restore/run.json") ($(find "$restore/carry" -type f | wc -l) files)"
@@ -251,9 +256,15 @@ EOF
         "$dest/run.json" 2>/dev/null) || theirs="(no run.json)"
       [ "$theirs" = "$ours" ] || die "$dest holds other measurements (run: $theirs): save into a folder of its own, --into DIR"
     fi
-    for path in "${carry[@]}"; do   # inside the run, and there: refused before anything is written
-      case /$path/ in */../*|//*) die "--carry $path: not a path inside the run" ;; esac
-      [ -e "$folder/$path" ] || die "--carry $path: no such file or folder in $folder"
+    carried=()   # inside the run (not the clone's git, not long_run's own files), holding files: refused first
+    for path in "${carry[@]}"; do
+      rel=$(realpath -m --relative-to="$folder" "$folder/$path")
+      case /$path:$rel in
+        //*|*:.|*:..|*:../*|*:.git|*:.git/*|*:long_run.*|*:.long_run.env) die "--carry $path: not a path of the run's own files" ;;
+      esac
+      [ -e "$folder/$rel" ] || die "--carry $path: no such file or folder in $folder"
+      [ -n "$(cd "$folder" && find "./$rel" -type f ! -name '.*' -print -quit)" ] || die "--carry $path: holds no file"
+      carried+=("$rel")
     done
     running=false
     if running_pid > /dev/null; then running=true; fi
@@ -267,26 +278,33 @@ EOF
     for file in params.yaml dvc.lock; do [ ! -f "$folder/$file" ] || cp "$folder/$file" "$tmp/$file"; done
     # what it carries: whole files (a resume state is replaced by a rename, never rewritten in place), no atomic
     # writes' hidden temporary files
-    [ ${#carry[@]} = 0 ] || mkdir "$tmp/carry"
-    for path in "${carry[@]}"; do
-      (cd "$folder" && find "$path" -type f ! -name '.*' -print0 |
-        while IFS= read -r -d '' file; do cp --parents "$file" "$tmp/carry/"; done)
+    # (a file that goes while this runs, a state its finished stage removed, is left out)
+    [ ${#carried[@]} = 0 ] || mkdir "$tmp/carry"
+    for rel in "${carried[@]}"; do
+      (cd "$folder" && find "./$rel" -type f ! -name '.*' -print0 |
+        while IFS= read -r -d '' file; do cp --parents "$file" "$tmp/carry/" || [ ! -e "$file" ]; done)
     done
     # the CPU it ran on (fine-tuned results differ in their last digits from one CPU to another); its cores by
     # getconf, not nproc, which counts OMP_NUM_THREADS
     cpu="$(sed -n 's/^model name[[:space:]]*: //p' /proc/cpuinfo | head -1), $(getconf _NPROCESSORS_ONLN) cores"
     if grep -qw avx512f /proc/cpuinfo; then cpu="$cpu, AVX-512"; else cpu="$cpu, no AVX-512"; fi
-    python3 -c 'import json, sys; keys = "commit", "profile", "settings", "runs", "saved_at", "running", "cpu", "carried"
+    python3 -c 'import json, sys; keys = "commit", "profile", "settings", "runs", "saved_at", "running", "cpu"
 record = dict(zip(keys, sys.argv[1:])) | {"settings": sys.argv[3].split(), "running": sys.argv[6] == "true"}
-print(json.dumps(record | {"carried": sys.argv[8].split()}, indent=2))' \
+print(json.dumps(record | {"carried": sys.argv[8:]}, indent=2))' \
       "$(git -C "$folder" rev-parse HEAD)" "$LONG_RUN_PROFILE" "${LONG_RUN_SETTINGS:-}" "${LONG_RUN_SCRIPT:-dvc repro}" \
-      "$(date -u +%FT%TZ)" "$running" "$cpu" "${carry[*]}" > "$tmp/run.json"
+      "$(date -u +%FT%TZ)" "$running" "$cpu" "${carried[@]}" > "$tmp/run.json"
+    had_carry=0; [ ! -d "$dest/carry" ] || had_carry=1
     rm -rf "$dest.old"
     if [ -e "$dest" ]; then mv "$dest" "$dest.old"; fi
     mv "$tmp" "$dest"
     rm -rf "$dest.old"
     trap - EXIT
     echo "saved $folder's measurements in $dest ($(find "$dest" -path "$dest/metrics/*" -type f | wc -l) files of metrics/; commit them)"
+    if [ ${#carried[@]} -gt 0 ]; then
+      echo "carried: ${carried[*]} ($(find "$dest/carry" -type f | wc -l) files, $(du -sh "$dest/carry" | cut -f1))"
+    elif [ "$had_carry" = 1 ]; then
+      echo "note: the earlier save's carry/ is not in this one (save with --carry PATH to keep a run's training)"
+    fi
     ;;
   *) usage ;;
 esac

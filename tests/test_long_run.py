@@ -121,6 +121,11 @@ def test_a_run_saved_with_what_it_carries_continues_where_its_machine_is_gone(tm
     run_tool(["bash", SCRIPT, "stop", str(first)], tmp_path)
     (stopped,) = re.findall(r"SIGTERM: stopping after step (\d+),", (first / "long_run.log").read_text())
     saved = tmp_path / "saved"
+    for bad in ("../run", "/etc", ".", "models/..", ".git", "long_run.log"):  # never outside it, nor all of it
+        refused = subprocess.run(["bash", SCRIPT, "save", str(first), "--into", str(saved), "--carry", bad],
+                                 capture_output=True, text=True)  # fmt: skip
+        assert refused.returncode == 2 and "not a path of the run's own files" in refused.stderr, bad
+    assert not saved.exists()
     run_tool(["bash", SCRIPT, "save", str(first), "--into", str(saved), "--carry", "models/.resume"], tmp_path)
     carried = sorted(path.name for path in (saved / "carry" / "models" / ".resume").iterdir())
     assert f"{MAZE}-phase0-seed0.pt" in carried and f"{MAZE}-phase0-seed1.pt" in carried
@@ -137,6 +142,9 @@ def test_a_run_saved_with_what_it_carries_continues_where_its_machine_is_gone(tm
     bare = subprocess.run(["bash", SCRIPT, "start", str(second), *pinned, "--restore", str(tmp_path / "bare")],
                           capture_output=True, text=True)  # fmt: skip
     assert bare.returncode == 2 and "carries nothing" in bare.stderr and not second.exists()
+    resume = ["bash", SCRIPT, "resume", str(second), "--restore", str(saved)]
+    resumed = subprocess.run(resume, capture_output=True, text=True)
+    assert resumed.returncode == 2 and "--restore is for start" in resumed.stderr
 
     out = run_tool(["bash", SCRIPT, "start", str(second), *pinned, "--restore", str(saved), "--foreground"], tmp_path)
     assert f"restored from {saved}: models/.resume (" in out
