@@ -277,8 +277,7 @@ EOF
       while IFS= read -r -d '' file; do [ ! -f "$file" ] || cp --parents "$file" "$tmp/"; done)
     for file in params.yaml dvc.lock; do [ ! -f "$folder/$file" ] || cp "$folder/$file" "$tmp/$file"; done
     # what it carries: whole files (a resume state is replaced by a rename, never rewritten in place), no atomic
-    # writes' hidden temporary files
-    # (a file that goes while this runs, a state its finished stage removed, is left out)
+    # writes' hidden temporary files; a file that goes while this runs (its finished stage removed it) is left out
     [ ${#carried[@]} = 0 ] || mkdir "$tmp/carry"
     for rel in "${carried[@]}"; do
       (cd "$folder" && find "./$rel" -type f ! -name '.*' -print0 |
