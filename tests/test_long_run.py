@@ -133,7 +133,8 @@ def test_a_run_saved_with_what_it_carries_continues_where_its_machine_is_gone(tm
     assert json.loads((saved / "run.json").read_text())["carried"] == ["models/.resume"]
     shutil.rmtree(first)  # the machine is gone: only the committed save is left
 
-    # refused in one line before anything is cloned: another run's save, a save that carries nothing, a bad path
+    # refused in one line before anything is cloned: another run's save, a save that carries nothing, --restore
+    # outside start
     second = tmp_path / "second"
     other = subprocess.run(["bash", SCRIPT, "start", str(second), *pinned[:4], "--restore", str(saved)],
                            capture_output=True, text=True)  # fmt: skip
