@@ -217,12 +217,50 @@ def test_science_maze_runs_both_recipes_on_one_phase0_and_one_set_of_controls(tm
     for name, summary in ((MAZE, first), (f"{MAZE}-rollouts", second)):
         assert summary_of(raw, science / name)[MAZE] == summary  # each pass's per-seed metrics, kept beside it
         assert [path.name for path in (science / name).iterdir()] == raw["tasks"]  # of the tasks it ran only
-    # run again (as after a stop): no training reruns (DVC's run cache restores the models of each recipe), the
-    # uncached evaluations that rerun give the same summaries
+    # run again (as after a stop): a pass whose summary this run wrote is not run again
     again = run_tool(["bash", "scripts/science_maze.sh"], project)
+    for recipe, name in (("plans", MAZE), ("rollouts", f"{MAZE}-rollouts")):
+        assert f"the {recipe} pass is done (metrics/science/{name}.json, this run's): not run again" in again
+    assert "Running stage" not in again and "recipe=" not in again
+    # a pass stopped after its summary and before its per-seed metrics runs again: DVC's run cache restores the
+    # models of each recipe, and the uncached evaluations that rerun give the same summaries
+    shutil.rmtree(science / f"{MAZE}-rollouts")
+    again = run_tool(["bash", "scripts/science_maze.sh"], project)
+    assert "the plans pass is done" in again and "evolution.generate.recipe=rollouts" in again
     assert not any(f"Running stage '{stage}@" in again for stage in ("collect", "pretrain", "finetune", "control"))
     assert json.loads((science / f"{MAZE}.json").read_text())[MAZE] == first
     assert json.loads((science / f"{MAZE}-rollouts.json").read_text())[MAZE] == second
+
+
+@pytest.mark.e2e
+def test_a_science_maze_run_restored_in_its_second_pass_does_not_run_the_first_again(tmp_path: Path) -> None:
+    """A run saved in the `rollouts` pass, carrying the `plans` pass's summary and per-seed metrics and the models
+    both passes share (phase 0, phase 1's control), continues on a new clone with the `rollouts` pass alone."""
+    (tmp_path / "project").mkdir()
+    project = make_smoke_project(tmp_path / "project", run_tool, edit=_maze_phases_only)
+    (project / "scripts").mkdir()
+    shutil.copy2(REPO / "scripts" / "science_maze.sh", project / "scripts")
+    run_tool(["git", "add", "scripts"], project)
+    run_tool(["git", "commit", "-qm", "science_maze.sh"], project)
+    head = run_tool(["git", "rev-parse", "HEAD"], project).strip()
+    pinned = ["--from", str(project), "--commit", head, "--script", "scripts/science_maze.sh", "--venv", sys.prefix]
+    first = tmp_path / "first"
+    run_tool(["bash", SCRIPT, "start", str(first), *pinned, "--foreground"], tmp_path)
+    # as a save taken while the rollouts pass fine-tuned phase 1: its lock, the plans pass's record, the shared models
+    plans = f"metrics/science/{MAZE}"
+    carry = [plans + ".json", plans, f"models/{MAZE}/phase0", f"models/{MAZE}/phase1-control"]
+    saved = tmp_path / "saved"
+    carried = [arg for path in carry for arg in ("--carry", path)]
+    run_tool(["bash", SCRIPT, "save", str(first), "--into", str(saved), *carried], tmp_path)
+    second = tmp_path / "second"
+    run_tool(["bash", SCRIPT, "start", str(second), *pinned, "--restore", str(saved), "--foreground"], tmp_path)
+    log = (second / "long_run.log").read_text()
+    assert "the plans pass is done" in log and "evolution.generate.recipe=plans" not in log
+    assert log.count("Running stage 'finetune@phase1'") == 1  # the rollouts pass's, whose model was not carried
+    assert "Running stage 'pretrain@" not in log and "Running stage 'control@phase1'" not in log
+    for name in (f"{MAZE}.json", f"{MAZE}-rollouts.json"):  # the same figures as the run that was not interrupted
+        figures = [json.loads((run / "metrics" / "science" / name).read_text()) for run in (first, second)]
+        assert figures[0] == figures[1], name
 
 
 @pytest.mark.e2e
