@@ -193,49 +193,9 @@ def _maze_phases_only(path: Path) -> None:
 
 
 @pytest.mark.e2e
-def test_science_maze_runs_both_recipes_on_one_phase0_and_one_set_of_controls(tmp_path: Path) -> None:
-    project = make_smoke_project(tmp_path, run_tool, edit=_maze_phases_only)
-    (project / "scripts").mkdir()
-    shutil.copy2(REPO / "scripts" / "science_maze.sh", project / "scripts")
-    log = run_tool(["bash", "scripts/science_maze.sh"], project)
-
-    plans, rollouts = log.split("evolution.generate.recipe=rollouts", 1)
-    for stage in ("collect", "pretrain", "evaluate-phase0"):
-        assert f"Running stage '{stage}@{MAZE}'" in plans and f"Stage '{stage}@{MAZE}' didn't change" in rollouts
-    # phase 1's control is trained once (phase k's starts from phase k-1's model: that recipe's own)
-    assert "Running stage 'control@phase1'" in plans and "Running stage 'control@phase1'" not in rollouts
-    for stage in ("generate@phase1", "discriminate@phase1", "finetune@phase1"):
-        assert f"Running stage '{stage}'" in plans and f"Running stage '{stage}'" in rollouts
-
-    science = project / "metrics" / "science"
-    first = json.loads((science / f"{MAZE}.json").read_text())[MAZE]
-    second = json.loads((science / f"{MAZE}-rollouts.json").read_text())[MAZE]
-    assert first["phase_0"] == second["phase_0"]  # one phase 0 and one control, scored on the same episodes
-    assert first["phase_1"]["control"]["score_mean"] == second["phase_1"]["control"]["score_mean"]
-    raw = yaml.safe_load((project / "params.yaml").read_text())
-    assert raw["evolution"]["generate"]["recipe"] == "plans"
-    for name, summary in ((MAZE, first), (f"{MAZE}-rollouts", second)):
-        assert summary_of(raw, science / name)[MAZE] == summary  # each pass's per-seed metrics, kept beside it
-        assert [path.name for path in (science / name).iterdir()] == raw["tasks"]  # of the tasks it ran only
-    # run again (as after a stop): a pass whose summary this run wrote is not run again
-    again = run_tool(["bash", "scripts/science_maze.sh"], project)
-    for recipe, name in (("plans", MAZE), ("rollouts", f"{MAZE}-rollouts")):
-        assert f"the {recipe} pass is done (metrics/science/{name}.json, this run's): not run again" in again
-    assert "Running stage" not in again and "recipe=" not in again
-    # a pass stopped after its summary and before its per-seed metrics runs again: DVC's run cache restores the
-    # models of each recipe, and the uncached evaluations that rerun give the same summaries
-    shutil.rmtree(science / f"{MAZE}-rollouts")
-    again = run_tool(["bash", "scripts/science_maze.sh"], project)
-    assert "the plans pass is done" in again and "evolution.generate.recipe=rollouts" in again
-    assert not any(f"Running stage '{stage}@" in again for stage in ("collect", "pretrain", "finetune", "control"))
-    assert json.loads((science / f"{MAZE}.json").read_text())[MAZE] == first
-    assert json.loads((science / f"{MAZE}-rollouts.json").read_text())[MAZE] == second
-
-
-@pytest.mark.e2e
-def test_a_science_maze_run_restored_in_its_second_pass_does_not_run_the_first_again(tmp_path: Path) -> None:
-    """A run saved in the `rollouts` pass, carrying the `plans` pass's summary and per-seed metrics and the models
-    both passes share (phase 0, phase 1's control), continues on a new clone with the `rollouts` pass alone."""
+def test_science_maze_runs_both_recipes_on_one_phase0_and_continues_after_a_stop_or_on_a_new_machine(
+    tmp_path: Path,
+) -> None:
     (tmp_path / "project").mkdir()
     project = make_smoke_project(tmp_path / "project", run_tool, edit=_maze_phases_only)
     (project / "scripts").mkdir()
@@ -246,9 +206,44 @@ def test_a_science_maze_run_restored_in_its_second_pass_does_not_run_the_first_a
     pinned = ["--from", str(project), "--commit", head, "--script", "scripts/science_maze.sh", "--venv", sys.prefix]
     first = tmp_path / "first"
     run_tool(["bash", SCRIPT, "start", str(first), *pinned, "--foreground"], tmp_path)
-    # as a save taken while the rollouts pass fine-tuned phase 1: its lock, the plans pass's record, the shared models
-    plans = f"metrics/science/{MAZE}"
-    carry = [plans + ".json", plans, f"models/{MAZE}/phase0", f"models/{MAZE}/phase1-control"]
+    log = (first / "long_run.log").read_text()
+
+    plans, rollouts = log.split("evolution.generate.recipe=rollouts", 1)
+    for stage in ("collect", "pretrain", "evaluate-phase0"):
+        assert f"Running stage '{stage}@{MAZE}'" in plans and f"Stage '{stage}@{MAZE}' didn't change" in rollouts
+    # phase 1's control is trained once (phase k's starts from phase k-1's model: that recipe's own)
+    assert "Running stage 'control@phase1'" in plans and "Running stage 'control@phase1'" not in rollouts
+    for stage in ("generate@phase1", "discriminate@phase1", "finetune@phase1"):
+        assert f"Running stage '{stage}'" in plans and f"Running stage '{stage}'" in rollouts
+
+    science = first / "metrics" / "science"
+    read = lambda run, name: json.loads((run / "metrics" / "science" / f"{name}.json").read_text())  # noqa: E731
+    first_pass, second_pass = read(first, MAZE)[MAZE], read(first, f"{MAZE}-rollouts")[MAZE]
+    assert first_pass["phase_0"] == second_pass["phase_0"]  # one phase 0 and one control, scored on the same episodes
+    assert first_pass["phase_1"]["control"]["score_mean"] == second_pass["phase_1"]["control"]["score_mean"]
+    raw = yaml.safe_load((first / "params.yaml").read_text())
+    assert raw["evolution"]["generate"]["recipe"] == "plans"
+    for name, summary in ((MAZE, first_pass), (f"{MAZE}-rollouts", second_pass)):
+        assert summary_of(raw, science / name)[MAZE] == summary  # each pass's per-seed metrics, kept beside it
+        assert [path.name for path in (science / name).iterdir()] == raw["tasks"]  # of the tasks it ran only
+
+    # run again (as after a stop): a pass whose summary this run wrote is not run again
+    again = run_tool(["bash", "scripts/science_maze.sh"], first)
+    for recipe, name in (("plans", MAZE), ("rollouts", f"{MAZE}-rollouts")):
+        assert f"the {recipe} pass is done (metrics/science/{name}.json, this run's): not run again" in again
+    assert "Running stage" not in again and "recipe=" not in again
+    # a pass stopped after its summary and before its per-seed metrics runs again: DVC's run cache restores the
+    # models of each recipe, and the uncached evaluations that rerun give the same summary
+    shutil.rmtree(science / f"{MAZE}-rollouts")
+    again = run_tool(["bash", "scripts/science_maze.sh"], first)
+    assert "the plans pass is done" in again and "evolution.generate.recipe=rollouts" in again
+    assert not any(f"Running stage '{stage}@" in again for stage in ("collect", "pretrain", "finetune", "control"))
+    assert read(first, f"{MAZE}-rollouts")[MAZE] == second_pass
+
+    # the machine gone during the rollouts pass: a save with its lock, the plans pass's record and the models both
+    # passes share (phase 0, phase 1's control) continues on a new clone with the rollouts pass alone
+    record = f"metrics/science/{MAZE}"
+    carry = [record + ".json", record, f"models/{MAZE}/phase0", f"models/{MAZE}/phase1-control"]
     saved = tmp_path / "saved"
     carried = [arg for path in carry for arg in ("--carry", path)]
     run_tool(["bash", SCRIPT, "save", str(first), "--into", str(saved), *carried], tmp_path)
@@ -258,9 +253,8 @@ def test_a_science_maze_run_restored_in_its_second_pass_does_not_run_the_first_a
     assert "the plans pass is done" in log and "evolution.generate.recipe=plans" not in log
     assert log.count("Running stage 'finetune@phase1'") == 1  # the rollouts pass's, whose model was not carried
     assert "Running stage 'pretrain@" not in log and "Running stage 'control@phase1'" not in log
-    for name in (f"{MAZE}.json", f"{MAZE}-rollouts.json"):  # the same figures as the run that was not interrupted
-        figures = [json.loads((run / "metrics" / "science" / name).read_text()) for run in (first, second)]
-        assert figures[0] == figures[1], name
+    for name in (MAZE, f"{MAZE}-rollouts"):  # the figures of the run that was not interrupted
+        assert read(second, name) == read(first, name), name
 
 
 @pytest.mark.e2e
