@@ -5,11 +5,13 @@
 # equal-compute control are the first pass's (phase k's control starts from phase k-1: that recipe's). Each pass's
 # summary goes to metrics/science/<task>.json (plans) and metrics/science/<task>-rollouts.json, its per-seed task
 # metrics (metrics/tasks/) to metrics/science/<task>/ and <task>-rollouts/; params.yaml is left
-# as the profile wrote it. Rerunning the script after any stop continues where it stopped: a pass whose summary this
-# run has written (one that differs from the commit's) is not run again (remove the summary to rerun it), DVC skips
-# or restores (run cache) the trained models, training resumes from its checkpoint, and the uncached stages
-# (discrimination, evaluations: minutes) rerun. So a run restored on another machine in its second pass
-# (long_run.sh start --restore) needs the first pass's summary and per-seed folder carried, not its models.
+# as the profile wrote it, and the params each pass ran with to metrics/science/<name>.params.yaml. Rerunning the
+# script after any stop continues where it stopped: a pass this run has finished (its summary there, differing from
+# the commit's, beside its per-seed folder and a params record equal to params.yaml as the pass would run) is not run
+# again (remove its summary to rerun it), DVC skips or restores (run cache) the trained models, training resumes from
+# its checkpoint, and the uncached stages (discrimination, evaluations: minutes) rerun. So a run restored on another
+# machine in its second pass (long_run.sh start --restore) needs the first pass's record carried (summary, per-seed
+# folder, params), not its models.
 # Long: run it in a pinned clone,
 #   bash scripts/long_run.sh start ../runs/science-medium --profile science-medium --script scripts/science_maze.sh
 set -euo pipefail
@@ -18,26 +20,31 @@ task=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve
 tasks=$(python -c 'import yaml; print(" ".join(yaml.safe_load(open("params.yaml"))["tasks"]))')
 trap 'adaptdiffuser set evolution.generate.recipe=plans > /dev/null' EXIT   # params.yaml as the profile wrote it
 mkdir -p metrics/science
-written_here() {  # pass $1's summary and per-seed folder are there, the summary not as the commit has it
-  [ -f "metrics/science/$1.json" ] && [ -d "metrics/science/$1" ] &&
-    [ -n "$(git status --porcelain -- "metrics/science/$1.json")" ]
+done_here() {  # pass $1 finished in this run with these params: its record whole, its summary not the commit's
+  local record=metrics/science/$1
+  [ -f "$record.json" ] && [ -d "$record" ] && [ -f "$record.params.yaml" ] &&
+    cmp -s "$record.params.yaml" params.yaml &&
+    [ "$(git rev-parse -q --verify "HEAD:$record.json" || true)" != "$(git hash-object "$record.json")" ]
 }
 for recipe in plans rollouts; do
   name=$task
   [ "$recipe" = plans ] || name=$task-$recipe
-  if written_here "$name"; then
+  adaptdiffuser set "evolution.generate.recipe=$recipe" > /dev/null
+  if done_here "$name"; then
     echo "== $task: the $recipe pass is done (metrics/science/$name.json, this run's): not run again"
     continue
   fi
   echo "== $(date -u +%FT%TZ) $task: evolution.generate.recipe=$recipe"
-  adaptdiffuser set "evolution.generate.recipe=$recipe"
+  rm -f "metrics/science/$name.json"   # an earlier summary (other params) marks nothing done while the pass reruns
   dvc repro
-  cp metrics/summary.json "metrics/science/$name.json.tmp"
-  mv "metrics/science/$name.json.tmp" "metrics/science/$name.json"   # whole or absent
-  # the pass's per-seed metrics of the tasks it ran beside its summary (the next pass rewrites metrics/tasks/): what
-  # pools seeds run apart (adaptdiffuser pool)
+  # the pass's record, its summary last (what marks the pass done): its per-seed metrics of the tasks it ran (the next
+  # pass rewrites metrics/tasks/; what pools seeds run apart, adaptdiffuser pool), its params, its summary
   rm -rf "metrics/science/$name.tmp" && mkdir "metrics/science/$name.tmp"
   for ran in $tasks; do cp -r "metrics/tasks/$ran" "metrics/science/$name.tmp/"; done
   rm -rf "metrics/science/$name" && mv "metrics/science/$name.tmp" "metrics/science/$name"
+  cp params.yaml "metrics/science/$name.params.yaml.tmp"
+  mv "metrics/science/$name.params.yaml.tmp" "metrics/science/$name.params.yaml"
+  cp metrics/summary.json "metrics/science/$name.json.tmp"
+  mv "metrics/science/$name.json.tmp" "metrics/science/$name.json"   # whole or absent
 done
 adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"

@@ -232,18 +232,28 @@ def test_science_maze_runs_both_recipes_on_one_phase0_and_continues_after_a_stop
     for recipe, name in (("plans", MAZE), ("rollouts", f"{MAZE}-rollouts")):
         assert f"the {recipe} pass is done (metrics/science/{name}.json, this run's): not run again" in again
     assert "Running stage" not in again and "recipe=" not in again
-    # a pass stopped after its summary and before its per-seed metrics runs again: DVC's run cache restores the
-    # models of each recipe, and the uncached evaluations that rerun give the same summary
+    # a pass whose record is not whole, or was made with other params, runs again: DVC's run cache restores the
+    # models of each recipe, and the uncached evaluations that rerun give the same summaries
     shutil.rmtree(science / f"{MAZE}-rollouts")
+    with (science / f"{MAZE}.params.yaml").open("a") as params_record:
+        params_record.write("# another setting\n")
     again = run_tool(["bash", "scripts/science_maze.sh"], first)
-    assert "the plans pass is done" in again and "evolution.generate.recipe=rollouts" in again
+    for recipe in ("plans", "rollouts"):
+        assert f"evolution.generate.recipe={recipe}" in again and f"the {recipe} pass is done" not in again
     assert not any(f"Running stage '{stage}@" in again for stage in ("collect", "pretrain", "finetune", "control"))
-    assert read(first, f"{MAZE}-rollouts")[MAZE] == second_pass
+    assert read(first, MAZE)[MAZE] == first_pass and read(first, f"{MAZE}-rollouts")[MAZE] == second_pass
+    assert (science / f"{MAZE}.params.yaml").read_text() == (first / "params.yaml").read_text()
 
     # the machine gone during the rollouts pass: a save with its lock, the plans pass's record and the models both
     # passes share (phase 0, phase 1's control) continues on a new clone with the rollouts pass alone
     record = f"metrics/science/{MAZE}"
-    carry = [record + ".json", record, f"models/{MAZE}/phase0", f"models/{MAZE}/phase1-control"]
+    carry = [
+        record + ".json",
+        record,
+        record + ".params.yaml",
+        f"models/{MAZE}/phase0",
+        f"models/{MAZE}/phase1-control",
+    ]
     saved = tmp_path / "saved"
     carried = [arg for path in carry for arg in ("--carry", path)]
     run_tool(["bash", SCRIPT, "save", str(first), "--into", str(saved), *carried], tmp_path)
@@ -253,8 +263,7 @@ def test_science_maze_runs_both_recipes_on_one_phase0_and_continues_after_a_stop
     assert "the plans pass is done" in log and "evolution.generate.recipe=plans" not in log
     assert log.count("Running stage 'finetune@phase1'") == 1  # the rollouts pass's, whose model was not carried
     assert "Running stage 'pretrain@" not in log and "Running stage 'control@phase1'" not in log
-    for name in (MAZE, f"{MAZE}-rollouts"):  # the figures of the run that was not interrupted
-        assert read(second, name) == read(first, name), name
+    assert read(second, f"{MAZE}-rollouts") == read(first, f"{MAZE}-rollouts")  # the uninterrupted run's figures
 
 
 @pytest.mark.e2e
