@@ -20,6 +20,9 @@ task=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve
 tasks=$(python -c 'import yaml; print(" ".join(yaml.safe_load(open("params.yaml"))["tasks"]))')
 trap 'adaptdiffuser set evolution.generate.recipe=plans > /dev/null' EXIT   # params.yaml as the profile wrote it
 mkdir -p metrics/science
+copy_whole() {  # copy file $1 to $2 so that $2 is whole or absent
+  cp "$1" "$2.tmp" && mv "$2.tmp" "$2"
+}
 done_here() {  # pass $1 finished in this run with these params: its record whole, its summary not the commit's
   local record=metrics/science/$1
   [ -f "$record.json" ] && [ -d "$record" ] && [ -f "$record.params.yaml" ] &&
@@ -42,9 +45,7 @@ for recipe in plans rollouts; do
   rm -rf "metrics/science/$name.tmp" && mkdir "metrics/science/$name.tmp"
   for ran in $tasks; do cp -r "metrics/tasks/$ran" "metrics/science/$name.tmp/"; done
   rm -rf "metrics/science/$name" && mv "metrics/science/$name.tmp" "metrics/science/$name"
-  cp params.yaml "metrics/science/$name.params.yaml.tmp"
-  mv "metrics/science/$name.params.yaml.tmp" "metrics/science/$name.params.yaml"
-  cp metrics/summary.json "metrics/science/$name.json.tmp"
-  mv "metrics/science/$name.json.tmp" "metrics/science/$name.json"   # whole or absent
+  copy_whole params.yaml "metrics/science/$name.params.yaml"
+  copy_whole metrics/summary.json "metrics/science/$name.json"
 done
 adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"
