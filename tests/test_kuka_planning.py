@@ -27,6 +27,7 @@ from adaptdiffuser.families.kuka.execution import (
     held_block_condition,
     place_condition,
     place_guidance,
+    placed_goal_condition,
     resting_blocks_pinned,
 )
 from adaptdiffuser.families.kuka.params import KukaTaskParams
@@ -39,6 +40,7 @@ from adaptdiffuser.families.kuka.scene import (
     block_position_columns,
 )
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
+from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS
 from adaptdiffuser.planning import Planner
 
 HORIZON = 16
@@ -292,6 +294,40 @@ def test_the_hold_condition_follows_the_stretch_and_each_episodes_block(planner:
     in_turn = place_condition(planner, first=4, last=12)(1, 0, obs)(x)
     flags = planner.normalizer.unnormalize(in_turn.numpy())[:, :, list(FLAG_COLUMNS)]
     assert np.allclose(flags[:, 4:12, 1], 1.0) and np.allclose(flags[:, 4:12][:, :, [0, 2, 3]], 0.0)
+
+
+def test_the_goal_state_ends_each_plan_as_it_started_but_its_block_on_target(planner: RecordingPlanner) -> None:
+    """``placed_goal_condition``: plan i's last state is its first with block ``blocks[i]``'s xy at that block's
+    target (raw units); every other step is left as it is."""
+    x = torch.rand(2, HORIZON, OBS_DIM) * 2 - 1
+    y = placed_goal_condition(planner, [2, 0])(x)
+    assert torch.equal(y[:, :-1], x[:, :-1])
+    raw_first, raw_last = (planner.normalizer.unnormalize(t.numpy()) for t in (x[:, 0], y[:, -1]))
+    for row, block in enumerate((2, 0)):
+        xy = block_position_columns(block).start + np.arange(2)
+        np.testing.assert_allclose(raw_last[row, xy], PLACE_TARGETS[block, :2], atol=1e-6)
+        rest = np.setdiff1d(np.arange(OBS_DIM), xy)
+        np.testing.assert_allclose(raw_last[row, rest], raw_first[row, rest], atol=1e-6)
+
+
+def test_pick_and_place_plans_end_on_target_though_their_resting_blocks_are_pinned(
+    planner: RecordingPlanner, tmp_path: Path
+) -> None:
+    """``pick_place.goal_state`` reaches the evaluation's plans and is applied after pinning: a plan that never
+    picks its block still ends with it on target (pinning alone would hold it where it rests)."""
+    from adaptdiffuser.family_registry import get_family
+
+    settings = {"setups": [1], "episodes": 1, "batch_size": 1, "goal_state": True}
+    task = params_from_dict(
+        kuka_raw({"diffusion.horizon": HORIZON, "planning.pin_resting_blocks": True, "pick_place": settings}, tmp_path)
+    ).resolve("kuka-stacking")
+    planner.clear()
+    get_family("kuka").evaluate_unseen(task, planner, 1.0, {}, 0, "", False)
+    for stretch, plans in enumerate(planner.plans):
+        block = stretch % N_BLOCKS  # in_turn
+        xy = block_position_columns(block).start + np.arange(2)
+        np.testing.assert_allclose(plans[0, -1, xy], PLACE_TARGETS[block, :2], atol=1e-5)
+        np.testing.assert_allclose(plans[0, -1, :N_JOINTS], plans[0, 0, :N_JOINTS], atol=1e-5)
 
 
 def test_a_hold_span_must_be_ordered(tmp_path: Path) -> None:

@@ -131,13 +131,40 @@ def held_block_condition(planner: Planner, blocks: Sequence[int], first: int, la
     return project
 
 
+def placed_goal_condition(planner: Planner, blocks: Sequence[int]) -> Projection:
+    """Plan ``i`` ends where it started but for block ``blocks[i]``, whose xy is at its pick-and-place target: the
+    last planned state is the plan's first (the real start, inpainted) with that block's xy replaced (inpainted at
+    every denoising step, as the start is). Works on ``planner``'s normalized trajectories."""
+    act, normalizer = planner.act_dim, planner.normalizer
+    columns = [act + block_position_columns(b).start for b in blocks]
+    rows = np.zeros((len(blocks), act + OBS_DIM))
+    for i, column in enumerate(columns):
+        rows[i, column : column + 2] = PLACE_TARGETS[blocks[i], :2]
+    normalized = normalizer.normalize(rows)
+    device = planner.device
+    targets = torch.as_tensor(
+        np.stack([normalized[i, c : c + 2] for i, c in enumerate(columns)]), dtype=planner.dtype, device=device
+    )
+    index = torch.tensor(columns, device=device)[:, None] + torch.arange(2, device=device)  # [plans, 2]
+
+    def project(x: torch.Tensor) -> torch.Tensor:
+        x = x.clone()
+        last = x[:, 0, act:].clone()
+        last.scatter_(1, index - act, targets.to(x.dtype))
+        x[:, -1, act:] = last
+        return x
+
+    return project
+
+
 class ReplanningController(Controller):
     """Plans ``horizon`` states from the current observation and executes them open loop, one planned state per
     step; replans every ``replan_every`` steps (default ``horizon - 1``, the whole plan, so ``replans`` plans fill an
     episode). Plan ``r`` of episode ``e`` is seeded by ``(seed, e, r)``; ``guidance(k, o, obs)`` gives the guidance
     of a plan drawn ``o`` steps into the ``k``-th stretch of ``horizon - 1`` steps from observations ``obs``
     ``[n, 39]`` (or None); each plan is constrained by ``project`` (e.g. :func:`resting_blocks_pinned`) when given,
-    after ``condition(k, o, obs)`` (e.g. :func:`held_block_condition`, or None) when that is given; with
+    after ``condition(k, o, obs)`` (e.g. :func:`held_block_condition`, or None) when that is given, and then by
+    ``finish(k, o, obs)`` (e.g. :func:`placed_goal_condition`: last, so that pinning cannot undo it); with
     ``follow_blocks`` the arm is commanded by :func:`commands_following_blocks` instead of the planned joints. With
     ``record``, :attr:`recorded` collects each episode's planned states ``[T + 1, 39]`` (the start, then the state
     each step was commanded to reach), episodes in the order they ran."""
@@ -152,6 +179,7 @@ class ReplanningController(Controller):
         replan_every: int | None = None,
         follow_blocks: bool = False,
         condition: Callable[[int, int, np.ndarray], Projection | None] | None = None,
+        finish: Callable[[int, int, np.ndarray], Projection | None] | None = None,
     ) -> None:
         self.planner = planner
         self.seed = seed
@@ -162,6 +190,7 @@ class ReplanningController(Controller):
             raise ValueError(f"replan_every must be in [1, {self.span}] (horizon - 1), got {replan_every}")
         self.project = project
         self.condition = condition
+        self.finish = finish
         self.follow_blocks = follow_blocks
         self.record = record
         self._rows: list[list[np.ndarray]] = []
@@ -186,7 +215,8 @@ class ReplanningController(Controller):
             stretch, offset = divmod(t, self.span)
             guidance = self.guidance(stretch, offset, obs) if self.guidance is not None else None
             condition = self.condition(stretch, offset, obs) if self.condition is not None else None
-            project = _then(condition, self.project)
+            finish = self.finish(stretch, offset, obs) if self.finish is not None else None
+            project = _then(_then(condition, self.project), finish)
             self.plans = self.planner.plan(obs, None, seeds, guidance, project)[:, :, self.planner.act_dim :]
             if self.first_plans is None:
                 self.first_plans = self.plans.copy()
@@ -258,6 +288,16 @@ def place_condition(
     return make
 
 
+def place_goal(planner: Planner, next_block: str = "in_turn") -> Callable[[int, int, np.ndarray], Projection]:
+    """Pick-and-place's end condition: the plans of stretch ``k`` end with each episode's :func:`guided_blocks`
+    block at its target and the rest of the scene as the plan starts (:func:`placed_goal_condition`)."""
+
+    def make(stretch: int, offset: int, obs: np.ndarray) -> Projection:
+        return placed_goal_condition(planner, guided_blocks(next_block, stretch, obs))
+
+    return make
+
+
 def task_controller(
     task: TaskParams,
     planner: Planner,
@@ -265,23 +305,26 @@ def task_controller(
     guidance: Callable[[int, int, int], GuidanceBase | None] | None = None,
     record: bool = False,
     condition: Callable[[int, int, np.ndarray], Projection | None] | None = None,
+    finish: Callable[[int, int, np.ndarray], Projection | None] | None = None,
 ) -> ReplanningController:
     """The controller of a KUKA task's plans, as its ``planning`` settings say (every evaluation and generation)."""
     p = task.settings.planning
     project = resting_blocks_pinned(planner) if p.pin_resting_blocks else None
-    return ReplanningController(planner, seed, guidance, record, project, p.replan_every, p.follow_blocks, condition)
+    return ReplanningController(
+        planner, seed, guidance, record, project, p.replan_every, p.follow_blocks, condition, finish
+    )
 
 
 def pick_place_controller(
     task: TaskParams, planner: Planner, alpha: float, seed: int, record: bool = False
 ) -> ReplanningController:
     """The controller of pick-and-place episodes (evaluation and generation), as the ``pick_place`` settings say:
-    guided with scale ``alpha`` from ``guide_from``, and conditioned on holding the guided block over ``hold`` when
-    that is set."""
+    guided with scale ``alpha`` from ``guide_from``, conditioned on holding the guided block over ``hold`` when that
+    is set and on the scene the plan should leave when ``goal_state`` is."""
     p = task.settings.pick_place
     horizon = planner.horizon
     guidance = place_guidance(planner, alpha, int(p.guide_from * horizon), p.next_block, p.guide_on)
-    condition, steps = None, p.hold_steps(horizon)
-    if steps is not None:
-        condition = place_condition(planner, *steps, p.next_block)
-    return task_controller(task, planner, seed, guidance, record, condition)
+    steps = p.hold_steps(horizon)
+    hold = place_condition(planner, *steps, p.next_block) if steps is not None else None
+    goal = place_goal(planner, p.next_block) if p.goal_state else None
+    return task_controller(task, planner, seed, guidance, record, hold, goal)

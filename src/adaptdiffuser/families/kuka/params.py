@@ -129,6 +129,10 @@ class PickPlaceSettings(BaseModel):
     #: steps between these two fractions of the horizon, every flag off after (inpainted, as the start is); null: no
     #: condition (the paper: guidance alone, which seldom makes the plan pick the guided block, docs/kuka.md)
     hold: Annotated[list[Annotated[float, Field(ge=0, le=1)]], Field(min_length=2, max_length=2)] | None = None
+    #: condition each plan's last state on the scene it should leave: the plan's start state (arm, flags, every
+    #: block) with the guided block's xy at its target, inpainted as the start is (the reference's pick-and-place
+    #: code sets its plans' last state so); false: the plan's end is free (guidance alone)
+    goal_state: bool = False
     batch_size: int = Field(20, gt=0)
 
     @field_validator("hold")
