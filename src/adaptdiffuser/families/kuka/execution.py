@@ -136,22 +136,17 @@ def placed_goal_condition(planner: Planner, blocks: Sequence[int]) -> Projection
     last planned state is the plan's first (the real start, inpainted) with that block's xy replaced (inpainted at
     every denoising step, as the start is). Works on ``planner``'s normalized trajectories."""
     act, normalizer = planner.act_dim, planner.normalizer
-    columns = [act + block_position_columns(b).start for b in blocks]
+    # each plan's block xy: its two columns in the trajectory, and their target in the model's units
+    xy = np.array([[act + block_position_columns(b).start + k for k in range(2)] for b in blocks])
+    plans = np.arange(len(blocks))[:, None]
     rows = np.zeros((len(blocks), act + OBS_DIM))
-    for i, column in enumerate(columns):
-        rows[i, column : column + 2] = PLACE_TARGETS[blocks[i], :2]
-    normalized = normalizer.normalize(rows)
-    device = planner.device
-    targets = torch.as_tensor(
-        np.stack([normalized[i, c : c + 2] for i, c in enumerate(columns)]), dtype=planner.dtype, device=device
-    )
-    index = torch.tensor(columns, device=device)[:, None] + torch.arange(2, device=device)  # [plans, 2]
+    rows[plans, xy] = PLACE_TARGETS[list(blocks), :2]
+    targets = torch.as_tensor(normalizer.normalize(rows)[plans, xy], dtype=planner.dtype, device=planner.device)
+    index = torch.as_tensor(xy - act, device=planner.device)  # within a state's columns
 
     def project(x: torch.Tensor) -> torch.Tensor:
         x = x.clone()
-        last = x[:, 0, act:].clone()
-        last.scatter_(1, index - act, targets.to(x.dtype))
-        x[:, -1, act:] = last
+        x[:, -1, act:] = x[:, 0, act:].scatter(1, index, targets.to(x.dtype))
         return x
 
     return project
