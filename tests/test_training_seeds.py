@@ -24,6 +24,7 @@ from adaptdiffuser.layout import (
     results_dir,
     score_table_path,
     selected_path,
+    unseen_plot_path,
 )
 from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.seeding import training_seed
@@ -44,6 +45,7 @@ from adaptdiffuser.stages.report import (
     rescaled_score,
     run_report,
     seed_points,
+    unseen_series,
     unseen_table,
 )
 from adaptdiffuser.stages.summarize import run_summarize, unseen_gain
@@ -322,3 +324,48 @@ def test_a_summary_with_its_dataset_draws_the_datasets_score(tmp_path: Path) -> 
     assert run_report(tmp_path, with_data, tmp_path / "data")["cheetah"] == rows  # the table is the phases'
     drawn = [(tmp_path / name / report_plot_path("cheetah")).read_bytes() for name in ("plain", "data")]
     assert drawn[0] != drawn[1]
+
+
+def test_an_unseen_task_gets_its_own_figure_of_each_score_by_phase(tmp_path: Path) -> None:
+    """A task whose summary names an unseen task (KUKA's pick-and-place: a score and one per setup) gets a second
+    figure, one panel per score, each phase beside its control; a task without one gets none."""
+
+    def place(mean: float, setup1: float, setup2: float) -> dict:
+        return {
+            "n_episodes": 40,
+            "score_mean": mean,
+            "score_stderr": 0.5,
+            "setup1_score_mean": setup1,
+            "setup1_score_stderr": 0.4,
+            "setup2_score_mean": setup2,
+            "setup2_score_stderr": None,  # a family that reports no spread: drawn without a bar
+        }
+
+    stacking = {"score_mean": 60.0, "score_stderr": 5.0, "return_mean": 1.8, "n_episodes": 50}
+    task = {
+        "unseen_task": "pick_place",
+        "phase_0": {**stacking, "pick_place": place(1.0, 0.0, 2.0)},
+        "phase_1": {
+            **stacking,
+            "pick_place": place(3.0, 4.0, 2.0),
+            "control": {**stacking, "pick_place": place(0.5, 1.0, 0.0)},
+        },
+    }
+    series = unseen_series(task)
+    assert list(series) == ["score", "setup1_score", "setup2_score"]
+    assert series["setup1_score"] == {
+        "phases": [0, 1],
+        "means": [0.0, 4.0],
+        "stderrs": [0.4, 0.4],
+        "control_phases": [1],
+        "control_means": [1.0],
+        "control_stderrs": [0.4],
+    }
+    assert series["setup2_score"]["stderrs"] == [0.0, 0.0]
+    summary = tmp_path / "summary.json"
+    summary.write_text(json.dumps({"arm": task, "cheetah": {"phase_0": stacking}}))
+    run_report(tmp_path, summary, tmp_path / "out")
+    assert (tmp_path / "out" / unseen_plot_path("arm")).stat().st_size > 0
+    assert (tmp_path / "out" / report_plot_path("cheetah")).exists()
+    assert unseen_series({"phase_0": stacking}) == {}
+    assert not (tmp_path / "out" / unseen_plot_path("cheetah")).exists()

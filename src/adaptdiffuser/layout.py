@@ -127,3 +127,7 @@ def score_table_path(task: str) -> Path:
 
 def report_plot_path(task: str) -> Path:
     return Path(f"plots/report/{task}/score_by_phase.png")
+
+
+def unseen_plot_path(task: str) -> Path:
+    return Path(f"plots/report/{task}/unseen_by_phase.png")

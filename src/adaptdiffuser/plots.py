@@ -93,6 +93,37 @@ def save_score_by_phase(
     fig, ax = plt.subplots(figsize=(4.4, 3.2))
     if dataset_score is not None:
         ax.axhline(dataset_score, color="grey", ls="--", lw=1, label=f"dataset ({dataset_score:.1f})")
+    _draw_by_phase(ax, phases, means, stderrs, control, seed_points, control_seed_points)
+    ax.set_ylabel("normalized score")
+    save_figure(fig, path)
+
+
+def save_panels_by_phase(
+    panels: dict[str, tuple[list[int], list[float], list[float], tuple[list[int], list[float], list[float]]]],
+    path: str | Path,
+    title: str,
+) -> None:
+    """One PNG, one panel per named measure (e.g. an unseen task's score per setup), on one y scale: ``(phases,
+    means, stderrs, control)`` as :func:`save_score_by_phase` draws them, with no seed dots."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.2), sharey=True, squeeze=False)
+    for ax, (name, (phases, means, stderrs, control)) in zip(axes[0], panels.items(), strict=True):
+        _draw_by_phase(ax, phases, means, stderrs, control)
+        ax.set_title(name, fontsize=9)
+    axes[0][0].set_ylabel("score")
+    fig.suptitle(title, fontsize=9, y=1.03)
+    save_figure(fig, path)
+
+
+def _draw_by_phase(
+    ax: plt.Axes,
+    phases: list[int],
+    means: list[float],
+    stderrs: list[float],
+    control: tuple[list[int], list[float], list[float]] | None = None,
+    seed_points: tuple[list[int], list[float]] | None = None,
+    control_seed_points: tuple[list[int], list[float]] | None = None,
+) -> None:
+    """Each phase's mean with standard-error bars, its control's beside it, the seeds' own points as dots."""
     line = ax.errorbar(phases, means, yerr=stderrs, marker="o", capsize=4, label="AdaptDiffuser")
     if seed_points is not None and seed_points[0]:
         ax.plot(*seed_points, ".", color=line[0].get_color(), alpha=0.5, ms=5, label="training seeds")
@@ -109,8 +140,6 @@ def save_score_by_phase(
         ax.legend(fontsize=7)
     ax.set_xticks(phases)
     ax.set_xlabel("phase (0 = Diffuser)")
-    ax.set_ylabel("normalized score")
-    save_figure(fig, path)
 
 
 def save_series_picture(

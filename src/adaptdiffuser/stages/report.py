@@ -1,5 +1,5 @@
 """Stage ``report``: per task, score by phase (and its equal-compute control's) as a PNG with error bars and a CSV
-table for ``dvc plots show``."""
+table for ``dvc plots show``; a task with an unseen task gets a second PNG of that task's scores by phase."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from adaptdiffuser.io import atomic_path, read_json
-from adaptdiffuser.layout import SUMMARY, report_plot_path, score_table_path
-from adaptdiffuser.plots import save_score_by_phase
+from adaptdiffuser.layout import SUMMARY, report_plot_path, score_table_path, unseen_plot_path
+from adaptdiffuser.plots import save_panels_by_phase, save_score_by_phase
 from adaptdiffuser.stages.common import phase_entries, unseen_scores
 
 TABLE_COLUMNS = (
@@ -46,6 +46,31 @@ def score_table(task_summary: dict) -> list[dict]:
             }
         )
     return rows
+
+
+def unseen_series(task_summary: dict) -> dict[str, dict[str, list]]:
+    """Per score of the task's unseen task (``unseen_task``; e.g. KUKA's ``setup1_score``), its phases, means and
+    standard errors, and its controls' (``control_phases``, ...), in phase order; empty without an unseen task.
+    A standard error a family does not report reads 0."""
+    name = task_summary.get("unseen_task")
+    series: dict[str, dict[str, list]] = {}
+    if name is None:
+        return series
+    for phase, entry in phase_entries(task_summary):
+        m, c = entry.get(name), entry.get("control", {}).get(name)
+        for measure in unseen_scores(m or {}):
+            s = series.setdefault(measure, {k: [] for k in ("phases", "means", "stderrs")})
+            s["phases"].append(phase)
+            s["means"].append(m[f"{measure}_mean"])
+            s["stderrs"].append(m.get(f"{measure}_stderr") or 0.0)
+            if c is not None:
+                for key, value in (
+                    ("control_phases", phase),
+                    ("control_means", c[f"{measure}_mean"]),
+                    ("control_stderrs", c.get(f"{measure}_stderr") or 0.0),
+                ):
+                    s.setdefault(key, []).append(value)
+    return series
 
 
 def _pm(mean: float | None, stderr: float | None) -> str:
@@ -204,9 +229,10 @@ def seed_points(task_summary: dict) -> dict[str, tuple[list[int], list[float]]]:
 
 
 def run_report(root: Path, summary_path: Path | None = None, into: Path | None = None) -> dict[str, list[dict]]:
-    """Write ``metrics/report/<task>/score_by_phase.csv`` and ``plots/report/<task>/score_by_phase.png`` under
-    ``into`` (default ``root``) for every task of ``summary_path`` (default the pipeline's ``metrics/summary.json``;
-    a kept summary such as ``metrics/science/<task>.json`` draws its figure again)."""
+    """Write ``metrics/report/<task>/score_by_phase.csv`` and ``plots/report/<task>/score_by_phase.png`` (and
+    ``unseen_by_phase.png`` for a task with an unseen task) under ``into`` (default ``root``) for every task of
+    ``summary_path`` (default the pipeline's ``metrics/summary.json``; a kept summary such as
+    ``metrics/science/<task>.json`` draws its figures again)."""
     if summary_path is None:
         summary = read_json(root / SUMMARY, "metrics/summary.json (run the summarize stage)")
     else:
@@ -237,5 +263,17 @@ def run_report(root: Path, summary_path: Path | None = None, into: Path | None =
             control_seed_points=seeds["control_score_mean"],
             dataset_score=task_summary.get("dataset", {}).get("score_mean"),
         )
+        unseen = unseen_series(task_summary)
+        if unseen:
+            panels = {
+                measure: (
+                    s["phases"],
+                    s["means"],
+                    s["stderrs"],
+                    (s.get("control_phases", []), s.get("control_means", []), s.get("control_stderrs", [])),
+                )
+                for measure, s in unseen.items()
+            }
+            save_panels_by_phase(panels, into / unseen_plot_path(task), f"{task}: {task_summary['unseen_task']}")
         tables[task] = rows
     return tables
