@@ -213,7 +213,14 @@ EOF
       echo "running: pid $pid; $total stages, $started started by this run's log, the last: $(grep "^Running stage" long_run.log | tail -n 1)"
     else
       left=$(dvc status --json | python -c 'import json, sys; print(len(json.load(sys.stdin)))')
-      echo "not running: $((total - left)) of $total stages done, $left left (continue: bash scripts/long_run.sh resume $folder)"
+      if finished "$folder"; then
+        # a script that sets params between its passes (science_maze.sh) can end with stages not matching the params
+        # it leaves: the run still ended by itself, with its results written
+        echo "finished: ended by itself with exit status 0; $((total - left)) of $total stages match params.yaml, $left left"
+      else
+        ended=""; [ -f long_run.rc ] && ended=" (ended with exit status $(cat long_run.rc))"
+        echo "not running$ended: $((total - left)) of $total stages done, $left left (continue: bash scripts/long_run.sh resume $folder)"
+      fi
     fi
     # each training's resume state and the step it holds (a finished seed's state stays until its stage ends)
     python - <<'EOF' || true

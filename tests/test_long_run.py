@@ -89,7 +89,7 @@ def test_a_killed_long_run_continues_with_one_command(tmp_path: Path) -> None:
     assert "resuming training from step 600" in log and f"resuming training from step {stopped} " in log
     assert any(f"resuming training from step {step} " in log for step in range(100, 600, 100))
     status = run_tool(["bash", SCRIPT, "status", str(folder)], tmp_path)
-    assert "0 left" in status and "resume state:" not in status
+    assert "finished: ended by itself" in status and "0 left" in status and "resume state:" not in status
     assert run_tool(["git", "rev-parse", "HEAD"], folder).strip() == head
     assert (folder / f"metrics/tasks/{MAZE}/phase0-unseen.json").exists()
 
