@@ -415,8 +415,9 @@ def test_failed_stage_marks_mlflow_run_failed(tmp_path: Path, monkeypatch: pytes
 
 
 def test_committed_lock_holds_the_digest_of_every_source_file_it_names() -> None:
-    """``dvc.lock``'s digest of each file of ``src/`` and ``pipeline/`` a stage lists is the file's own: a code change
-    recorded without rerunning (``scripts/relock_code.py``) left no stage believing older code."""
+    """``dvc.lock``'s digest of each file of ``src/`` and ``pipeline/`` a stage lists is the file's own: after a code
+    change the default pipeline was rerun (``dvc repro``) and its lock and metrics committed, so no stage believes
+    older code and no committed output comes from code other than the committed one."""
     lock = yaml.safe_load((REPO / "dvc.lock").read_text())
     stale = []
     for name, entry in lock["stages"].items():
@@ -425,4 +426,4 @@ def test_committed_lock_holds_the_digest_of_every_source_file_it_names() -> None
             source = dep["path"].split("/")[0] in ("src", "pipeline") and file.is_file()
             if source and hashlib.md5(file.read_bytes()).hexdigest() != dep["md5"]:
                 stale.append(f"{name}: {dep['path']}")
-    assert not stale, f"dvc.lock is stale (run scripts/relock_code.py): {stale}"
+    assert not stale, f"dvc.lock is stale (rerun `dvc repro` and commit its lock and metrics): {stale}"

@@ -90,10 +90,14 @@ def save_bundle(path: str | Path, bundle: ModelBundle) -> None:
             torch.save(bundle.optimizer, tmp / OPTIMIZER_FILE)
 
 
-def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> ModelBundle:
-    """Load a bundle; raise ``FileNotFoundError`` naming the missing checkpoint file (``optimizer.pt`` is optional)."""
+def load_bundle(path: str | Path, device: str | torch.device = "cpu", ema_only: bool = False) -> ModelBundle:
+    """Load a bundle; raise ``FileNotFoundError`` naming the missing checkpoint file (``optimizer.pt`` is optional).
+
+    With ``ema_only``, load a kept model (:mod:`adaptdiffuser.stages.kept_models`): its EMA weights serve as both
+    models and ``model.pt`` may be absent."""
     path = Path(path)
-    for name in BUNDLE_FILES:
+    needed = [name for name in BUNDLE_FILES if not (ema_only and name == "model.pt")]
+    for name in needed:
         if not (path / name).exists():
             raise FileNotFoundError(
                 f"checkpoint {path} is incomplete or missing: no {name} (run the stage that trains it)"
@@ -104,8 +108,10 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> ModelBu
     normalizer = Normalizer.from_state_dict(read_json(path / "normalizer.json"))
     bundle = make_bundle(model, diffusion, config["obs_dim"], config["act_dim"], normalizer)
     bundle.config = config
-    bundle.diffusion.model.load_state_dict(torch.load(path / "model.pt", map_location="cpu", weights_only=True))
-    bundle.ema.model.load_state_dict(torch.load(path / "ema.pt", map_location="cpu", weights_only=True))
+    ema = torch.load(path / "ema.pt", map_location="cpu", weights_only=True)
+    raw = ema if ema_only else torch.load(path / "model.pt", map_location="cpu", weights_only=True)
+    bundle.diffusion.model.load_state_dict(raw)
+    bundle.ema.model.load_state_dict(ema)
     if (path / OPTIMIZER_FILE).exists():
         bundle.optimizer = torch.load(path / OPTIMIZER_FILE, map_location="cpu", weights_only=True)
     bundle.diffusion.to(device)

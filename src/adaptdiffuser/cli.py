@@ -484,6 +484,31 @@ def pool(
         typer.echo(line)
 
 
+@app.command("evaluate-kept")
+def evaluate_kept(
+    name: Annotated[str, typer.Argument(help="a model of metrics/kept-models.json (maze2d-large/seed2/phase1-plans)")],
+    episodes: Annotated[int, typer.Option(min=1, help="episodes to play")] = 500,
+    eval_seed: Annotated[int, typer.Option(min=0, help="the seed of their start states")] = 5000,
+    into: Annotated[Path | None, typer.Option(help="also write the metrics to this JSON file")] = None,
+    device: Device = "auto",
+    progress: Progress = True,
+) -> None:
+    """Score a kept model (and its equal-compute control, on the same episodes: the paired gain) on start states of
+    your choice, under the params and reference scores of the run that made it."""
+    from adaptdiffuser.io import write_json
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.kept_models import evaluate_kept as run
+
+    out = _guarded(lambda: run(Path.cwd(), name, episodes, eval_seed, resolve_device(device), progress))
+    for role, m in out.items():
+        if role == "gain":
+            typer.echo(f"gain over the control: {m['gain_mean']:.1f} +- {m['gain_stderr']:.1f} (paired over episodes)")
+        else:
+            typer.echo(f"{role}: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f} ({_spread(m)})")
+    if into is not None:
+        write_json(into, {"model": name, "episodes": episodes, "eval_seed": eval_seed, **out})
+
+
 @app.command()
 def times() -> None:
     """How long each stage of this pipeline run took (this commit and params.yaml), from its MLflow runs."""
