@@ -28,7 +28,6 @@ from collections.abc import Callable
 import torch
 from speed_paths import alternate, locomotion_paths, maze_paths
 
-from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.stages.common import resolve_device
 
 PATHS = ("plain", "compiled")  # the eager network and the fast path, timed side by side
@@ -76,7 +75,7 @@ def main() -> None:
     # a U-Maze decision at batch 1 (the profile's planner, eager or compiled as compile.sampling says, and the other)
     pl = task.planner
     profile_planner = maze.planner(pl.sampler, pl.sampler_steps, device, maze.compile_sampling)
-    coin = profile_planner.guidance(CoinObjective(maze.coin), maze.alpha)
+    coin = maze.coin_guidance(profile_planner, 1)
     other = maze.planner(pl.sampler, pl.sampler_steps, device, not maze.compile_sampling)
     n_steps = task.diffusion.n_steps
     decisions = {

@@ -23,7 +23,7 @@ from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir, value_dir
-from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.models.value_network import ValueNetwork
 from adaptdiffuser.planning import Planner, ValuePlanningController
 from adaptdiffuser.stages.common import resolve_device
 from adaptdiffuser.value_training import load_value

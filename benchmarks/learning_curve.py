@@ -68,7 +68,7 @@ from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import resolve_device
 from adaptdiffuser.stages.pretrain import phase0_model
 from adaptdiffuser.stages.training_data import expert_training_data, pretrain_config
-from adaptdiffuser.stages.value import fit_value
+from adaptdiffuser.stages.value_function import fit_value
 from adaptdiffuser.training import fingerprint, save_resume_state, train
 from adaptdiffuser.value_training import save_value
 

@@ -17,7 +17,6 @@ import torch
 from speed_paths import locomotion_paths, maze_paths
 from torch.profiler import ProfilerActivity, profile
 
-from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.stages.common import resolve_device
 
 #: operator name fragments -> category, first match wins
@@ -80,7 +79,7 @@ def main() -> None:
     batched = maze.planner(gen.sampler, gen.sampler_steps, device)
     n = gen.batch_size
     starts, goals, seeds = maze.start.repeat(n, 0), maze.goal.repeat(n, 0), list(range(n))
-    coin = batched.guidance(CoinObjective(maze.coin.repeat(n, 1)), maze.alpha)
+    coin = maze.coin_guidance(batched, n)
     loco = locomotion_paths(device, args.episodes, args.samples)
     decide = loco.decision()
     lp = loco.task.planner

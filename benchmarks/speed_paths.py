@@ -22,16 +22,29 @@ from adaptdiffuser.checkpoint import ModelBundle, load_bundle, make_bundle
 from adaptdiffuser.config import GenerateParams, TaskParams, apply_profile, load_params
 from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
-from adaptdiffuser.diffusion.guidance import ValueGuidance
+from adaptdiffuser.diffusion.guidance import Guidance, Objective, ValueGuidance
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir
 from adaptdiffuser.models.compiled import compile_network
-from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.models.value_network import ValueNetwork
 from adaptdiffuser.planning import Planner, ValuePlanningController
 
 PROFILES = Path(__file__).resolve().parents[1] / "profiles"
+
+
+class PointPull(Objective):
+    """``J = -sum_t ||xy_t - point||``: minus how far each plan's positions pass from its point (``points``:
+    ``[batch, 2]``), the arithmetic of the Maze2D coin guidance, so a guided path costs here what it costs there."""
+
+    def __init__(self, points: torch.Tensor, eps: float = 1e-6) -> None:
+        self.points = points
+        self.eps = eps
+
+    def __call__(self, states: torch.Tensor) -> torch.Tensor:
+        delta = states[..., :2] - self.points.to(states)[:, None, :]
+        return -torch.sqrt((delta**2).sum(-1) + self.eps**2).sum(-1)
 
 
 @dataclass
@@ -52,6 +65,11 @@ class MazePaths:
         """The bundle's planner; ``compiled``: a copy of its EMA network under ``torch.compile`` (the fast path)."""
         bundle = replace(self.bundle, ema=copy.deepcopy(self.bundle.ema)) if compiled else self.bundle
         return Planner(bundle, make_sampler(sampler, steps), device, compiled=compiled)
+
+    def coin_guidance(self, planner: Planner, n: int) -> Guidance:
+        """Guidance of ``n`` plans toward the coin at scale ``alpha`` (the unseen task's guidance, as generation
+        uses it)."""
+        return planner.guidance(PointPull(self.coin.repeat(n, 1)), self.alpha)
 
     def training_batch(
         self, device: torch.device, size: int | None = None
@@ -115,7 +133,8 @@ def maze_paths(params_path: str, task_name: str | None, device: torch.device) ->
         normalizer = MinMaxNormalizer(-np.ones(dim) * 5, np.ones(dim) * 5)
         bundle = make_bundle(task.model, task.diffusion, env.obs_dim, env.act_dim, normalizer)
         source = "an untrained model of the profile's shape"
-    coin = torch.as_tensor(env.cell_to_xy(env.layout.free_cells[0])[None], dtype=torch.float32, device=device)
+    # the coin: the position of another start of the protocol (a point inside the maze, through the contract only)
+    coin = torch.as_tensor(env.reset(np.random.default_rng(1))[None, :2], dtype=torch.float32, device=device)
     start = env.reset(np.random.default_rng(0))[None]
     generation = params.phase(1).generate
     goal, alpha = env.goal_state()[None], max(params.alpha, 1.0)

@@ -4,8 +4,8 @@
 # the first run and cached). Each run's summary goes to metrics/science/<evolved task>.json, and the last one also to
 # metrics/science/halfcheetah-medium.json (its phase 0); params.yaml is left as the profile wrote it. Rerunning the
 # script after any stop continues where it stopped (DVC skips or restores what is done; training resumes from its
-# checkpoint). Long: run it in a pinned clone,
-#   bash scripts/long_run.sh start ../runs/science-locomotion --profile science-locomotion --script scripts/science_locomotion.sh
+# checkpoint). Long: run it in the background (docs/operations.md, long runs),
+#   adaptdiffuser profile science-locomotion && adaptdiffuser run start -- bash scripts/science_locomotion.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 first=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve"])')

@@ -10,10 +10,9 @@
 # the commit's, beside its per-seed folder and a params record equal to params.yaml as the pass would run) is not run
 # again (remove its summary to rerun it), DVC skips or restores (run cache) the trained models, training resumes from
 # its checkpoint, and the uncached stages (discrimination, evaluations: minutes) rerun. So a run restored on another
-# machine in its second pass (long_run.sh start --restore) needs the first pass's record carried (summary, per-seed
-# folder, params), not its models.
-# Long: run it in a pinned clone,
-#   bash scripts/long_run.sh start ../runs/science-medium --profile science-medium --script scripts/science_maze.sh
+# machine in its second pass needs the first pass's record carried (summary, per-seed folder, params), not its
+# models. Long: run it in the background (docs/operations.md, long runs),
+#   adaptdiffuser profile science-medium && adaptdiffuser run start -- bash scripts/science_maze.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 task=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve"])')

@@ -1,5 +1,5 @@
 """A cheap sweep worker for ``tests/test_sweep_load.py``, in its own module so that spawned workers import only this
-(not the test module and its fixtures): the real worker-side path (``tooling.sweep.load_worker_study``,
+(not the test module and its fixtures): the real worker-side path (``tooling.optuna_sweep.load_worker_study``,
 so ``make_storage`` with its heartbeat and retry settings, and Optuna's optimize loop) around a trial that only
 sleeps instead of running stages."""
 
@@ -13,7 +13,7 @@ import optuna
 
 from adaptdiffuser.config import SweepParams
 from adaptdiffuser.errors import StageError
-from adaptdiffuser.tooling.sweep import load_worker_study
+from adaptdiffuser.tooling.optuna_sweep import load_worker_study
 
 #: what every load-test worker uses: 1 s heartbeats on PostgreSQL, TPE seeded per worker
 SWEEP = SweepParams(workers=4, heartbeat_s=1, seed=0)

@@ -16,6 +16,7 @@ from adaptdiffuser.checkpoint import ModelBundle, make_bundle
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params, apply_profile, params_from_dict
 from adaptdiffuser.contract import EpisodeBatchResult, TaskFiles
 from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, ValueGuidance
 from adaptdiffuser.diffusion.noise import RowNoise, stream_words
@@ -26,9 +27,8 @@ from adaptdiffuser.families.maze2d.generation import generate_plans
 from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.families.maze2d.tasks import add_coins, sample_navigation_tasks
 from adaptdiffuser.family_registry import get_family
-from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.models.value_network import ValueNetwork
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.value_training import save_value
 
 CPU = torch.device("cpu")

@@ -24,6 +24,7 @@ from adaptdiffuser.config import (
     set_dotted,
     stage_names,
 )
+from adaptdiffuser.config.defaults import family_defaults
 from adaptdiffuser.families.maze2d.params import EnvParams, Maze2DTaskParams
 from adaptdiffuser.family_registry import get_family
 
@@ -40,7 +41,8 @@ def umaze(**sections: dict) -> dict:
 
 
 def quick() -> dict:
-    return yaml.safe_load((PROFILES / "quick.yaml").read_text())
+    """The quick profile resolved, as the committed params.yaml holds it (profiles/quick.yaml is an overlay)."""
+    return yaml.safe_load((REPO / "params.yaml").read_text())
 
 
 def write_params(tmp_path: Path, overlay: dict) -> Path:
@@ -95,8 +97,10 @@ def test_default_params_have_one_umaze_task() -> None:
     assert len(str(err.value).splitlines()) == 1
 
 
-def test_params_is_the_quick_profile() -> None:
-    assert (REPO / "params.yaml").read_text() == (PROFILES / "quick.yaml").read_text()
+def test_params_is_the_quick_profile(tmp_path: Path) -> None:
+    """The committed params.yaml is what `adaptdiffuser profile quick` writes (every value resolved)."""
+    written = apply_profile("quick", PROFILES, tmp_path / "params.yaml").read_text()
+    assert (REPO / "params.yaml").read_text() == written
 
 
 def test_profile_list() -> None:
@@ -126,10 +130,7 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
     out = apply_profile(profile, PROFILES, tmp_path / "params.yaml")
     assert out == tmp_path / "params.yaml"
     params = load_params(out)
-    if profile == "quick":
-        assert out.read_text() == (PROFILES / "quick.yaml").read_text()  # comments kept
-    else:
-        assert out.read_text().startswith(f"# Written by `adaptdiffuser profile {profile}`")
+    assert out.read_text().startswith(f"# Written by `adaptdiffuser profile {profile}`")
     if profile in PAPER:
         maze, horizon = PAPER[profile]
         task = params.evolved
@@ -146,7 +147,7 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         assert task.model.dim == 16 and task.planner.sampler_steps == 4  # the quick profile's model and planner
     if profile == "science-umaze":  # the quick profile on three seeds
         assert params.tasks == (UMAZE,) and params.evolve == UMAZE and params.seeds == (0, 1, 2)
-        assert params.pretrain == load_params(PROFILES / "quick.yaml").pretrain
+        assert params.pretrain == load_params(REPO / "params.yaml").pretrain
     if profile == "smoke":
         assert params.pretrain.steps == 20 and params.diffusion.horizon == 32
         maze = params.resolve(UMAZE)
@@ -226,7 +227,7 @@ def test_profiles_extend_parts_in_order(tmp_path: Path) -> None:
     header = out.read_text().splitlines()[0]
     assert header.endswith(
         "profiles/quick.yaml + profiles/parts/base.yaml + profiles/parts/a.yaml + profiles/parts/b.yaml + "
-        "profiles/mine.yaml"
+        "profiles/mine.yaml."
     )
     assert "extends" not in yaml.safe_load(out.read_text())
     with pytest.raises(ConfigError, match="unknown profile 'parts/a'"):
@@ -251,8 +252,9 @@ def test_family_defaults_are_expanded_into_each_task_of_the_family(tmp_path: Pat
     out = apply_profile("mine", profiles, tmp_path / "params.yaml")
     raw = yaml.safe_load(out.read_text())
     assert "family_defaults" not in raw
-    assert raw["task"]["walker2d-medium"] == {"family": "locomotion", "guide": {"n_samples": 5, "scale": 0.01},
-                                               "pretrain": {"steps": 300}}  # fmt: skip
+    # the whole entry: the profile's keys over the family's, every other key at the family model's default
+    expected = deep_merge(family_defaults("locomotion"), {"guide": {"n_samples": 5, "scale": 0.01}})
+    assert raw["task"]["walker2d-medium"] == expected | {"pretrain": {"steps": 300}}
     assert "guide" not in raw["task"]["maze2d-umaze"]
     params = load_params(out)
     hopper, walker, maze = (params.resolve(t) for t in ("hopper-medium", "walker2d-medium", "maze2d-umaze"))
@@ -598,12 +600,12 @@ def test_rejected_values_give_a_one_line_error_starting_with_the_key(
         ("evolve: maze2d-umaze", "evolve: null", "evolve: is null but phases are declared"),
         ("evolve: maze2d-umaze", "evolve: maze2d-large", "evolve: 'maze2d-large' must be one of tasks"),
         ("    family: maze2d", "    family: maze3d", f"{T}.family: must be one of ['kuka', 'locomotion', 'maze2d']"),
-        ("phase1: {previous: 0}", "phase1: 3", "phases.phase1: must be a mapping"),
+        ("phase1:\n    previous: 0", "phase1: 3", "phases.phase1: must be a mapping"),
         ("random_goal: false", "random_goal: no", None),  # YAML 1.1 reads `no` as false: accepted
     ],
 )
 def test_rejected_values_as_written_in_yaml(tmp_path: Path, old: str, new: str, key: str | None) -> None:
-    text = (PROFILES / "quick.yaml").read_text()
+    text = (REPO / "params.yaml").read_text()
     assert old in text
     path = tmp_path / "params.yaml"
     path.write_text(text.replace(old, new, 1))
@@ -781,7 +783,7 @@ def test_cli_set_validates_and_keeps_the_rest_of_the_file(tmp_path: Path) -> Non
     out.write_text((REPO / "params.yaml").read_text())
     result = CliRunner().invoke(app, ["set", "seeds=[0, 1, 2]", "--params", str(out)])
     assert result.exit_code == 0, result.output
-    assert load_params(out).seeds == (0, 1, 2) and "# guidance scale toward the gold coin" in out.read_text()
+    assert load_params(out).seeds == (0, 1, 2) and "# Written by `adaptdiffuser profile quick`" in out.read_text()
     before = out.read_text()
     for bad, message in (("seeds=[1, 1]", "lists a seed twice"), ("evolve=nowhere", "evolve"), ("seeds", "key=value")):
         result = CliRunner().invoke(app, ["set", bad, "--params", str(out)])
@@ -822,9 +824,9 @@ def test_science_profile_runs_both_tasks_on_three_seeds(tmp_path: Path) -> None:
 
 def test_exponent_without_dot_is_a_number(tmp_path: Path) -> None:
     path = tmp_path / "params.yaml"
-    path.write_text((PROFILES / "quick.yaml").read_text().replace("lr: 0.001 ", "lr: 1e-3 "))
+    path.write_text((REPO / "params.yaml").read_text().replace("lr: 0.001\n", "lr: 1e-3\n"))
     assert load_params(path).pretrain.lr == pytest.approx(1e-3)
-    path.write_text((PROFILES / "quick.yaml").read_text().replace("lr: 0.001 ", "lr: fast "))
+    path.write_text((REPO / "params.yaml").read_text().replace("lr: 0.001\n", "lr: fast\n"))
     with pytest.raises(ConfigError, match="pretrain.lr"):
         load_params(path)
 

@@ -14,11 +14,11 @@ from adaptdiffuser.config import DiffusionParams, ModelParams, PretrainParams
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import WindowDataset, joint_array
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.diffusion.guidance import Guidance, ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
 from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed
 from adaptdiffuser.training import train
 
 CPU = torch.device("cpu")

@@ -43,7 +43,7 @@ def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -
     resume = project / "models" / ".resume" / f"learning-curve-{MAZE}-recipe-short-seed0.pt"
     clock = resume.with_name(f"{resume.stem}-clock.json")
     log = tmp_path / "first.log"
-    with open(log, "w") as sink:  # its own process group, stopped as `long_run.sh stop` stops one: SIGTERM to it
+    with open(log, "w") as sink:  # its own process group, stopped as `adaptdiffuser run stop` stops one: SIGTERM to it
         first = subprocess.Popen(study, stdout=sink, stderr=subprocess.STDOUT, env=tool_env(), start_new_session=True)
         deadline = time.monotonic() + 600
         while _state_step(resume) != 1000:  # the first point and its state are written: the stop comes after them

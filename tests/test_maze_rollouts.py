@@ -24,6 +24,7 @@ from adaptdiffuser.config import (
 from adaptdiffuser.contract import TaskFiles, TrackedTrajectory
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
 from adaptdiffuser.data.windows import WindowDataset
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.diffusion.samplers import DDIMSampler
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.evolution.discriminator import QuantileRule, TopKRule
@@ -35,7 +36,6 @@ from adaptdiffuser.families.maze2d.selection import PAPER_MAZE_RULES, PaperRetur
 from adaptdiffuser.families.maze2d.tasks import sample_navigation_tasks
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed
 
 PROFILES = Path(__file__).resolve().parents[1] / "profiles"
 TASK = "maze2d-umaze"

@@ -1,21 +1,25 @@
-"""`adaptdiffuser pool`: a science run's training seeds run apart (one saved run a seed) and pooled give the metrics
-and the summary of the one run over all of them; runs that differ in more than their seeds do not pool."""
+"""`adaptdiffuser pool`: a science run's training seeds run apart (one run's folder, or one DVC experiment, a seed)
+and pooled give the metrics and the summary of the one run over all of them; runs that differ in more than their
+seeds do not pool."""
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 import yaml
-from smoke_project import REPO
+from smoke_project import REPO, make_smoke_project, run_tool
 
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.stages.pool import pool_runs, summary_of
+from adaptdiffuser.tooling.dvc_experiments import experiment_commit
 
 SAVED = REPO / "metrics" / "runs" / "science-umaze-7ba7674"  # a real three-seed run (U-Maze, both recipes)
 TASK = "maze2d-umaze"
@@ -41,7 +45,9 @@ def one_seed_run(folder: Path, seed: int, tasks: Path) -> Path:
     raw = yaml.safe_load((SAVED / "params.yaml").read_text()) | {"seeds": [seed]}
     folder.mkdir(parents=True)
     (folder / "params.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
-    shutil.copy2(SAVED / "dvc.lock", folder / "dvc.lock")
+    code = {"path": f"code/{TASK}.json", "md5": "1" * 32}  # the task's code digest, as DVC records it
+    lock = {"schema": "2.0", "stages": {f"pretrain@{TASK}": {"cmd": "python pipeline/pretrain.py", "deps": [code]}}}
+    (folder / "dvc.lock").write_text(yaml.safe_dump(lock))
     shutil.copy2(SAVED / "run.json", folder / "run.json")
     for where in (folder / "metrics" / "tasks", folder / "metrics" / "science" / PASS):
         for path in tasks.glob("*/*.json"):
@@ -86,6 +92,15 @@ def test_seeds_from_two_cpus_are_pooled_and_said_so(tasks: Path, tmp_path: Path)
     assert lines[0] == f"the seeds ran on 2 CPUs: {cpus[0]}; {cpus[1]} (say so beside the results)"
     records = json.loads((tmp_path / "pooled" / "run.json").read_text())["pooled"]
     assert [record["cpu"] for record in records] == ["AMD EPYC, 2 cores, AVX-512", "AMD EPYC, 2 cores, no AVX-512"]
+
+
+def test_runs_without_a_lock_pool_on_their_params_and_metrics(tasks: Path, tmp_path: Path) -> None:
+    runs = [one_seed_run(tmp_path / f"seed{seed}", seed, tasks) for seed in (0, 1)]
+    (runs[1] / "dvc.lock").write_text((runs[1] / "dvc.lock").read_text().replace("1" * 32, "0" * 32))
+    with pytest.raises(StageError, match="ran other code"):
+        pool_runs(runs, tmp_path / "pooled")
+    (runs[1] / "dvc.lock").unlink()  # a folder that keeps what a reader needs: its code is not checked
+    assert any("seeds [0, 1] pooled, summary" in line for line in pool_runs(runs, tmp_path / "pooled"))
 
 
 def test_a_phase_one_run_lacks_is_left_out_and_the_set_has_no_summary(tasks: Path, tmp_path: Path) -> None:
@@ -133,10 +148,7 @@ def test_the_command_line_says_in_one_line_what_is_not_a_saved_run(tasks: Path, 
     cli = [str(Path(sys.executable).parent / "adaptdiffuser"), "pool", str(run), str(tmp_path / "b"), "--into", "x"]
     out = subprocess.run(cli, capture_output=True, text=True, cwd=tmp_path)
     assert out.returncode == 2, out.stdout + out.stderr
-    assert (
-        out.stderr.strip()
-        == f"error: {tmp_path / 'b'} is not a saved run: it has no params.yaml (bash scripts/long_run.sh save)"
-    )
+    assert out.stderr.strip() == f"error: {tmp_path / 'b'} is not a run's folder: it has no params.yaml"
 
 
 def test_a_file_the_saves_left_out_as_committed_comes_from_the_runs_commit(tasks: Path, tmp_path: Path) -> None:
@@ -151,7 +163,7 @@ def test_a_file_the_saves_left_out_as_committed_comes_from_the_runs_commit(tasks
         subprocess.run([*git, *command], check=True)
     commit = subprocess.run([*git, "rev-parse", "HEAD"], capture_output=True, text=True, check=True).stdout.strip()
     runs = [one_seed_run(tmp_path / f"seed{seed}", seed, tasks) for seed in (0, 1)]
-    for run in runs:  # as `long_run.sh save` saves them: without the reference, the commit in run.json
+    for run in runs:  # as a run's folder holds them: without the reference, the commit in run.json
         (run / "metrics" / "tasks" / TASK / "reference.json").unlink()
         (run / "run.json").write_text(json.dumps({"commit": commit, "profile": "science-umaze"}))
     into = tmp_path / "pooled"
@@ -181,3 +193,54 @@ def test_a_seed_in_two_runs_files_is_refused(tasks: Path, tmp_path: Path) -> Non
     path.write_text(json.dumps(over_seeds({0: seed0["seeds"]["0"]})))
     with pytest.raises(StageError, match="holds seed 0, which another run's file holds too"):
         pool_runs(runs, tmp_path / "pooled")
+
+
+def _wait_for_queue(root: Path, timeout_s: float = 900.0) -> str:
+    """Poll ``dvc queue status`` until no experiment is queued or running; return the last status table."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        status = run_tool(["dvc", "queue", "status"], root)
+        if not re.search(r"\b(Queued|Running)\b", status):
+            return status
+        assert time.monotonic() < deadline, f"the queue did not finish in {timeout_s:.0f} s:\n{status}"
+        time.sleep(10)
+
+
+@pytest.mark.e2e
+def test_seeds_queued_as_dvc_experiments_run_on_two_workers_and_pool(tmp_path: Path) -> None:
+    def phase0_of_the_maze(path: Path) -> None:
+        raw = yaml.safe_load(path.read_text())
+        raw.update(tasks=[TASK], collect_tasks=[TASK], unseen_tasks=[TASK], evolve=None, phases={})
+        path.write_text(yaml.safe_dump(raw, sort_keys=False))
+
+    (tmp_path / "project").mkdir()
+    project = make_smoke_project(tmp_path / "project", run_tool, edit=phase0_of_the_maze)
+    out = run_tool(["adaptdiffuser", "seeds", "queue", "0", "1", "--name", "tiny"], project)
+    assert "queued tiny-seed0 tiny-seed1" in out and "--exp tiny-seed0 --exp tiny-seed1" in out
+    run_tool(["dvc", "queue", "start", "-j", "2"], project, OMP_NUM_THREADS="1")
+    try:
+        status = _wait_for_queue(project)
+    finally:
+        run_tool(["dvc", "queue", "stop"], project)
+    assert status.count("Success") == 2, status
+
+    into = tmp_path / "pooled"
+    cli = ["adaptdiffuser", "pool", "--exp", "tiny-seed1", "--exp", "tiny-seed0", "--into", str(into)]
+    assert "tasks: seeds [0, 1] pooled, summary" in run_tool(cli, project)
+    assert yaml.safe_load((into / "params.yaml").read_text())["seeds"] == [0, 1]
+    records = json.loads((into / "run.json").read_text())["pooled"]
+    assert [record["experiment"] for record in records] == ["tiny-seed1", "tiny-seed0"]
+    pooled = sorted((into / "metrics" / "tasks" / TASK).glob("*.json"))
+    assert {path.name for path in pooled} >= {"reference.json", "phase0.json", "phase0-unseen.json"}
+    for path in pooled:  # each seed's metrics as its experiment measured them
+        content = json.loads(path.read_text())
+        for seed in (0, 1):
+            commit = experiment_commit(project, f"tiny-seed{seed}")
+            shown = run_tool(["git", "show", f"{commit}:metrics/tasks/{TASK}/{path.name}"], project)
+            theirs = json.loads(shown)
+            if "seeds" in theirs:
+                assert content["seeds"][str(seed)] == theirs["seeds"][str(seed)], path.name
+            else:  # the reference: no seed's, the same in both
+                assert content == theirs, path.name
+    summary = json.loads((into / "metrics" / "summary.json").read_text())
+    assert summary[TASK]["phase_0"]["n_seeds"] == 2

@@ -85,7 +85,7 @@ def test_a_stop_reaches_the_child_once_and_the_parent_waits_for_it(to: str, tmp_
         time.sleep(0.01)
     if to == "parent":  # `kill PID` of a study
         parent.send_signal(signal.SIGTERM)
-    else:  # `long_run.sh stop`: the whole process group
+    else:  # `adaptdiffuser run stop`: the whole process group
         os.killpg(parent.pid, signal.SIGTERM)
     assert parent.wait(timeout=30) == 128 + signal.SIGTERM
     assert out.read_text() == "1"  # the child had its one stop and finished before the parent went

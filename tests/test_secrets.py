@@ -13,7 +13,7 @@ from mlflow.tracking import MlflowClient
 from adaptdiffuser.config import SweepParams
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.tooling.mlflow_logging import REDACTED, ensure_experiment, log_params, redact, redact_text, stage_run
-from adaptdiffuser.tooling.sweep import make_storage, start_parent_run
+from adaptdiffuser.tooling.optuna_sweep import make_storage, start_parent_run
 
 PASSWORD = "S3cr3t-pw"
 STORAGE = f"postgresql://alice:{PASSWORD}@db.example.org:5432/optuna"

@@ -48,7 +48,7 @@ except SystemExit as done:
 import pyarrow.parquet as pq
 import torch
 
-import adaptdiffuser.seeding  # a project module, imported after the tracer started
+import adaptdiffuser.derived_seeds  # a project module, imported after the tracer started
 
 Path("data/input.txt").read_text()
 pq.read_table("data/table.parquet")  # opened in C++: seen through the wrapped reader
@@ -88,7 +88,7 @@ def test_tracer_records_modules_reads_and_listings_of_a_stage(tmp_path: Path) ->
     # pipeline/ is the script's folder, first on sys.path: the import system lists it for every import
     assert set(trace["listed"]) - {"pipeline"} == {"models"}
     modules = set(trace["modules"])
-    assert {"pipeline/probe.py", "src/adaptdiffuser/cli.py", "src/adaptdiffuser/seeding.py"} <= modules
+    assert {"pipeline/probe.py", "src/adaptdiffuser/cli.py", "src/adaptdiffuser/derived_seeds.py"} <= modules
     assert "src/adaptdiffuser/config/loader.py" in modules
     assert all(m.startswith(("src/adaptdiffuser/", "pipeline/")) and m.endswith(".py") for m in modules)
 

@@ -28,7 +28,7 @@ from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.pretrain import run_pretrain
 from adaptdiffuser.stages.reference import run_reference
 from adaptdiffuser.tooling.code_fingerprint import fingerprint, fingerprint_path
-from adaptdiffuser.tooling.sweep import (
+from adaptdiffuser.tooling.optuna_sweep import (
     _fail_trials_of_dead_workers,
     apply_best,
     load_worker_study,
@@ -263,9 +263,14 @@ def test_the_unseen_objectives_read_the_family_figure_of_the_unseen_metrics_file
 def test_apply_changes_only_the_swept_lines_of_the_repository_params(tmp_path: Path) -> None:
     repo_params = Path(__file__).resolve().parents[1] / "params.yaml"
     target = tmp_path / "params.yaml"
-    shutil.copy(repo_params, target)
+    commented = {"alpha: 10.0\n": "alpha: 10.0  # guidance\n", "max_error: 1.0\n": "max_error: 1.0  # cells\n"}
+    text = repo_params.read_text()
+    for old, new in commented.items():  # a file as a user comments it
+        assert text.count(old) == 1
+        text = text.replace(old, new)
+    target.write_text(text)
     apply_best(target, {"alpha": 42.5, "evolution.discriminate.max_error": 1.25})
-    before, after = repo_params.read_text().splitlines(), target.read_text().splitlines()
+    before, after = text.splitlines(), target.read_text().splitlines()
     assert len(before) == len(after)
     changed = [(old, new) for old, new in zip(before, after, strict=True) if old != new]
     assert [new.split("#")[0].split() for _, new in changed] == [["alpha:", "42.5"], ["max_error:", "1.25"]]

@@ -2,8 +2,9 @@
 real PostgreSQL server, one of them killed with SIGKILL in the middle of a trial. Afterwards no trial is lost,
 duplicated or left running: each is COMPLETE or PRUNED, or FAILED and retried exactly once with the same params.
 
-The workers are real separate processes started by the sweep's own :func:`adaptdiffuser.tooling.sweep.run_workers`, open
-the study as real workers do and run Optuna's optimize loop; only the trial itself is cheap (``load_worker``)."""
+The workers are real separate processes started by the sweep's own
+:func:`adaptdiffuser.tooling.optuna_sweep.run_workers`, open the study as real workers do and run
+Optuna's optimize loop; only the trial itself is cheap (``load_worker``)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from load_worker import SWEEP
 from load_worker import run as run_load_worker
 from test_sweep import postgres  # noqa: F401  (the real PostgreSQL server fixture)
 
-from adaptdiffuser.tooling.sweep import make_storage, retried_trial_number, run_workers
+from adaptdiffuser.tooling.optuna_sweep import make_storage, retried_trial_number, run_workers
 
 SHARES = [3, 3, 3, 3]  # 4 workers, 12 trials requested
 State = optuna.trial.TrialState

@@ -15,6 +15,7 @@ import yaml
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
+from adaptdiffuser.derived_seeds import training_seed
 from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.layout import (
     SUMMARY,
@@ -27,7 +28,6 @@ from adaptdiffuser.layout import (
     unseen_plot_path,
 )
 from adaptdiffuser.seed_metrics import over_seeds
-from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.collect import run_collect
 from adaptdiffuser.stages.common import phase_entries
 from adaptdiffuser.stages.discriminate import run_discriminate

@@ -10,15 +10,15 @@ import pytest
 import torch
 from pydantic import ValidationError
 
-from adaptdiffuser.config.value import ValueSettings
+from adaptdiffuser.config.value_settings import ValueSettings
 from adaptdiffuser.data.normalizer import GaussianNormalizer
 from adaptdiffuser.data.returns import ValueWindowDataset, returns_to_go
 from adaptdiffuser.data.schema import Trajectories, make_metadata
 from adaptdiffuser.data.windows import joint_array
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.models.unet import TemporalUnet
-from adaptdiffuser.models.value import ValueNetwork
-from adaptdiffuser.stages.value import split_heldout
+from adaptdiffuser.models.value_network import ValueNetwork
+from adaptdiffuser.stages.value_function import split_heldout
 from adaptdiffuser.value_training import heldout_r2, load_value, save_value, train_value, value_loss
 
 CPU = torch.device("cpu")

@@ -14,12 +14,12 @@ from torch import nn
 from adaptdiffuser.checkpoint import make_bundle
 from adaptdiffuser.contract import Controller, Simulator, Step
 from adaptdiffuser.data.normalizer import GaussianNormalizer
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.planning import Planner, ValuePlanningController, shift_plans
-from adaptdiffuser.seeding import derive_seed
 
 CPU = torch.device("cpu")
 

@@ -377,7 +377,7 @@ def sweep(
 ) -> None:
     """Optuna sweep over the params in sweep.space: each trial reruns the evolution phases on the cached phase 0."""
     from adaptdiffuser.tooling.dvc_experiments import EXPERIMENT_MODES
-    from adaptdiffuser.tooling.sweep import apply_best, run_sweep
+    from adaptdiffuser.tooling.optuna_sweep import apply_best, run_sweep
 
     _params(params)
     if dvc_exp not in EXPERIMENT_MODES:
@@ -429,7 +429,7 @@ def set_value(
     written."""
     import yaml
 
-    from adaptdiffuser.tooling.sweep import apply_best
+    from adaptdiffuser.tooling.optuna_sweep import apply_best
 
     values = {}
     for assignment in assignments:
@@ -472,16 +472,82 @@ def gains(
 
 @app.command()
 def pool(
-    runs: Annotated[list[Path], typer.Argument(help="saved runs (bash scripts/long_run.sh save) differing in seeds")],
     into: Annotated[Path, typer.Option(help="folder for the pooled run (replaced whole)")],
+    runs: Annotated[
+        list[Path] | None, typer.Argument(help="runs' folders (params.yaml, metrics/) differing in seeds")
+    ] = None,
+    exp: Annotated[
+        list[str] | None, typer.Option("--exp", help="a DVC experiment of this repository (repeat it), e.g. NAME-seed1")
+    ] = None,
 ) -> None:
-    """Pool saved runs of one profile that differ only in their training seeds (a science profile run one seed at a
-    time) into the metrics and summaries one run over all their seeds writes; then `adaptdiffuser gains
-    INTO/metrics/science/<name>.json` tables them."""
+    """Pool runs of one profile that differ only in their training seeds (folders, or the DVC experiments
+    `adaptdiffuser seeds queue` queued) into the metrics and summaries one run over all their seeds writes; then
+    `adaptdiffuser gains INTO/metrics/summary.json` tables them."""
     from adaptdiffuser.stages.pool import pool_runs
 
-    for line in _guarded(lambda: pool_runs(runs, into)):
+    for line in _guarded(lambda: pool_runs(runs or [], into, experiments=exp or [])):
         typer.echo(line)
+
+
+run_app = typer.Typer(
+    help="A long run in the background (dvc repro by default); after any stop, `run start` again continues it.",
+    no_args_is_help=True,
+)
+app.add_typer(run_app, name="run")
+RepoOption = Annotated[Path, typer.Option("--repo", help="the DVC project (default: the working directory)")]
+
+
+@run_app.command("start")
+def run_start(
+    command: Annotated[list[str] | None, typer.Argument(help="command to run (default: dvc repro); after --")] = None,
+    repo: RepoOption = Path("."),
+) -> None:
+    """Start the run in the background (log: .dvc/tmp/long-run/log). Starting again after a stop continues it: DVC
+    skips finished stages and training resumes from models/.resume/."""
+    from adaptdiffuser.tooling.long_run import DEFAULT_COMMAND, log_path, start
+
+    pid = _guarded(lambda: start(repo, command or DEFAULT_COMMAND))
+    typer.echo(f"running in the background (pid {pid}, log {log_path(repo)}): adaptdiffuser run status")
+
+
+@run_app.command("status")
+def run_status(repo: RepoOption = Path(".")) -> None:
+    """Whether the run runs, finished or stopped; the stages left; each resume state; the log's last lines."""
+    from adaptdiffuser.tooling.long_run import status
+
+    for line in _guarded(lambda: status(repo)):
+        typer.echo(line)
+
+
+@run_app.command("stop")
+def run_stop(
+    repo: RepoOption = Path("."),
+    grace: Annotated[float, typer.Option(help="seconds to wait for the run to end before SIGKILL")] = 60.0,
+) -> None:
+    """Stop the run and all it started (SIGTERM: a training stage writes its resume state first)."""
+    from adaptdiffuser.tooling.long_run import stop
+
+    killed = _guarded(lambda: stop(repo, grace))
+    how = f"killed after {grace:g} s" if killed else "stopped"
+    typer.echo(f"{how}; continue: adaptdiffuser run start")
+
+
+seeds_app = typer.Typer(help="A multi-seed run as DVC experiments, one per training seed.", no_args_is_help=True)
+app.add_typer(seeds_app, name="seeds")
+
+
+@seeds_app.command("queue")
+def seeds_queue(
+    seeds: Annotated[list[int], typer.Argument(help="training seeds, one experiment each")],
+    name: Annotated[str, typer.Option(help="experiments are named NAME-seed<s>")] = "run",
+    repo: RepoOption = Path("."),
+) -> None:
+    """Queue one DVC experiment per training seed (`-S seeds=[s]`) for `dvc queue start -j N`."""
+    from adaptdiffuser.tooling.dvc_experiments import queue_seeds
+
+    names = _guarded(lambda: queue_seeds(repo, name, seeds))
+    typer.echo(f"queued {' '.join(names)}: dvc queue start -j N; then")
+    typer.echo(f"  adaptdiffuser pool {' '.join(f'--exp {n}' for n in names)} --into metrics/runs/{name}")
 
 
 @app.command("evaluate-kept")
@@ -501,6 +567,8 @@ def evaluate_kept(
 
     out = _guarded(lambda: run(Path.cwd(), name, episodes, eval_seed, resolve_device(device), progress))
     for role, m in out.items():
+        if role == "episode_scores":
+            continue
         if role == "gain":
             typer.echo(f"gain over the control: {m['gain_mean']:.1f} +- {m['gain_stderr']:.1f} (paired over episodes)")
         else:
@@ -525,8 +593,11 @@ def times() -> None:
 
 @app.command()
 def check(params: ParamsPath = Path("params.yaml")) -> None:
-    """Validate a params file (exit 1 on a bad value, naming the key) and print what it will run."""
+    """Validate a params file (exit 1 on a bad value, naming the key), name the family keys its task entries leave
+    to the defaults, and print what it will run."""
     from adaptdiffuser.config import describe
+    from adaptdiffuser.config.defaults import unwritten
+    from adaptdiffuser.config.loader import read_yaml_mapping
 
     try:
         p = load_params(params)
@@ -534,6 +605,12 @@ def check(params: ParamsPath = Path("params.yaml")) -> None:
         typer.secho(f"error: {err}", fg=typer.colors.RED, err=True)
         raise typer.Exit(code=1) from err
     typer.echo(f"{params}: ok")
+    filled = unwritten(read_yaml_mapping(Path(params), "top level must be a mapping of sections"))
+    if filled:
+        typer.secho(
+            f"{params}: {len(filled)} task keys not written, taken from their family's defaults: {', '.join(filled)}",
+            fg=typer.colors.YELLOW,
+        )
     for line in describe(p):
         typer.echo(line)
 

@@ -26,9 +26,16 @@ import numpy as np
 
 from adaptdiffuser.layout import collect_dir, collect_resume_path, dataset_path, value_dir
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # types only: at run time the contract imports nothing of the project but the layout
+    import torch
+    from gymnasium import Space
+    from gymnasium.envs.registration import EnvSpec
+
+    from adaptdiffuser.config.sections import DiscriminateParams, GenerateParams
+    from adaptdiffuser.config.tasks import TaskParams
     from adaptdiffuser.data.d4rl import ExternalData
     from adaptdiffuser.data.schema import Trajectories
+    from adaptdiffuser.planning import Planner
 
 
 @dataclass(frozen=True)
@@ -185,20 +192,20 @@ class Family(ABC):
     uses_value_function: bool = False
 
     @abstractmethod
-    def make_simulator(self, task: Any) -> Simulator:
+    def make_simulator(self, task: TaskParams) -> Simulator:
         """A fresh simulator for ``task``."""
 
     @abstractmethod
-    def collect(self, task: Any, files: TaskFiles, progress: bool) -> Trajectories:
+    def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
         """The task's offline dataset (with file metadata); may write its own outputs (such as behaviour policies)
         under ``files.collect``."""
 
     @abstractmethod
-    def reference(self, task: Any, files: TaskFiles, progress: bool) -> dict[str, Any]:
+    def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
         """What 0 (``r_min``) and 100 (``r_max``) of the normalized score mean, plus any other reference figures."""
 
     @abstractmethod
-    def controller(self, task: Any, planner: Any, files: TaskFiles, device: Any) -> Controller:
+    def controller(self, task: TaskParams, planner: Planner, files: TaskFiles, device: torch.device) -> Controller:
         """The controller that turns the planner's plans into actions in the simulator during evaluation."""
 
     def episode_columns(self, result: EpisodeBatchResult) -> dict[str, list[Any]]:
@@ -214,7 +221,14 @@ class Family(ABC):
     unseen_task: str | None = None
 
     def evaluate_unseen(
-        self, task: Any, planner: Any, alpha: float, ref: dict[str, Any], pictures: Path, title: str, progress: bool
+        self,
+        task: TaskParams,
+        planner: Planner,
+        alpha: float,
+        ref: dict[str, Any],
+        pictures: Path,
+        title: str,
+        progress: bool,
     ) -> dict[str, float]:
         """The planner on the family's unseen task, guided with scale ``alpha`` (the top-level ``alpha``): its
         metrics; pictures of some episodes written under ``pictures`` (an existing folder), titled starting with
@@ -227,23 +241,29 @@ class Family(ABC):
 
     @abstractmethod
     def save_picture(
-        self, task: Any, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None
+        self,
+        task: TaskParams,
+        path: Path,
+        plan: np.ndarray | None,
+        executed: np.ndarray,
+        title: str,
+        goal: np.ndarray | None = None,
     ) -> None:
         """One PNG of an evaluation episode: the first plan and the executed states."""
 
-    def describe(self, task: Any) -> dict[str, Any]:
+    def describe(self, task: TaskParams) -> dict[str, Any]:
         """Facts about the task worth logging next to its runs (env id, dataset kind...)."""
         return {}
 
     # -- external data (the import stage and the Minari export) ------------------------------------------------------
 
-    def from_external(self, task: Any, raw: ExternalData) -> Trajectories:
+    def from_external(self, task: TaskParams, raw: ExternalData) -> Trajectories:
         """The task's dataset (with file metadata) from external data (a D4RL file or a Minari dataset, in their own
         coordinates); :class:`~adaptdiffuser.data.d4rl.DataImportError` naming the source, the field, the expected
         and the found dimension when the data does not fit the task's environment."""
         raise NotImplementedError(f"family {self.name!r} cannot import external data")
 
-    def export_spec(self, task: Any) -> tuple[Any, Any, Any]:
+    def export_spec(self, task: TaskParams) -> tuple[EnvSpec | None, Space, Space]:
         """``(env_spec, observation_space, action_space)`` for a Minari dataset of this task's data: the gymnasium
         ``EnvSpec`` of its environment (None when it has none) and the spaces of our observation and action rows."""
         import gymnasium as gym
@@ -256,10 +276,10 @@ class Family(ABC):
 
     def generate(
         self,
-        task: Any,
-        planner: Any,
+        task: TaskParams,
+        planner: Planner,
         files: TaskFiles,
-        cfg: Any,
+        cfg: GenerateParams,
         alpha: float,
         seed: int,
         generator: dict[str, Any],
@@ -271,14 +291,20 @@ class Family(ABC):
         raise NotImplementedError(f"family {self.name!r} has no evolution phases")
 
     def discriminate(
-        self, task: Any, generated: Trajectories, cfg: Any, phase: int, files: TaskFiles, progress: bool
+        self,
+        task: TaskParams,
+        generated: Trajectories,
+        cfg: DiscriminateParams,
+        phase: int,
+        files: TaskFiles,
+        progress: bool,
     ) -> Judgement:
         """Execute each generated plan in the real simulator, reject those the dynamics cannot follow and select
         among the rest by real reward (``cfg``: phase ``phase``'s ``DiscriminateParams``)."""
         raise NotImplementedError(f"family {self.name!r} has no evolution phases")
 
     def selected_data(
-        self, task: Any, generated: Trajectories, judgement: Judgement, generator: dict[str, Any]
+        self, task: TaskParams, generated: Trajectories, judgement: Judgement, generator: dict[str, Any]
     ) -> Trajectories:
         """The kept executed trajectories as a dataset (``generator``: metadata of how they were made)."""
         raise NotImplementedError(f"family {self.name!r} has no evolution phases")

@@ -10,12 +10,12 @@ import torch
 
 from adaptdiffuser.checkpoint import ModelBundle
 from adaptdiffuser.contract import Controller
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.diffusion.conditions import Projection
 from adaptdiffuser.diffusion.guidance import Guidance, GuidanceBase, Objective, ValueGuidance
 from adaptdiffuser.diffusion.noise import RowNoise
 from adaptdiffuser.diffusion.samplers import Sampler
 from adaptdiffuser.models.compiled import compile_network
-from adaptdiffuser.seeding import derive_seed
 
 
 class Planner:

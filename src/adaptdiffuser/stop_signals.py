@@ -1,6 +1,6 @@
 """A stop request that waits for the end of a training step, so that a stopped run loses no training.
 
-While a training loop that keeps a resume state runs, SIGTERM (``long_run.sh stop``, a scheduler, ``kill``) and
+While a training loop that keeps a resume state runs, SIGTERM (``adaptdiffuser run stop``, a scheduler, ``kill``) and
 SIGINT (Ctrl-C) are held by :class:`DeferredStop`: the loop finishes its step, writes its resume state there, then
 the signal is sent again and takes its course (SIGTERM ends the process as it would have; a Python handler, such as
 the one raising ``KeyboardInterrupt`` for SIGINT, runs). A second signal while one waits acts at once. Outside the

@@ -17,12 +17,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from adaptdiffuser.config.value import ValueSettings
+from adaptdiffuser.config.value_settings import ValueSettings
 from adaptdiffuser.data.returns import ValueWindowDataset
 from adaptdiffuser.diffusion.conditions import apply_inpainting
 from adaptdiffuser.diffusion.gaussian import GaussianDiffusion
 from adaptdiffuser.io import atomic_dir, read_json, write_json
-from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.models.value_network import ValueNetwork
 from adaptdiffuser.stop_signals import DeferredStop
 from adaptdiffuser.training import (
     LogFn,

@@ -4,10 +4,15 @@ Every stage loads the whole file through :func:`load_params`, so a bad value any
 work starts, with a one-line :class:`ConfigError` naming the key (for example ``pretrain.lr: must be a finite
 number, got nan``).
 
+Every default is stated once, by these classes (and each family's task model); the profiles are overlays over them
+and ``params.yaml`` is a profile resolved, every value written (:func:`apply_profile`).
+
 Modules: ``fields`` (value types and range checks), ``sections`` (one model per generic section), ``tasks`` (task
-entries, resolved with their family's model), ``phases`` (the phase chain), ``sweep`` (sweep settings and search
-space), ``params`` (the whole file and its cross-section checks), ``loader`` (YAML in, :class:`ConfigError` out),
-``profiles`` (profile switching), ``describe`` (what will run).
+entries, resolved with their family's model), ``phases`` (the phase chain), ``sweep_settings`` (sweep settings and
+search space), ``value_settings`` (a locomotion task's value function), ``params`` (the whole file and its
+cross-section checks), ``loader`` (YAML in, :class:`ConfigError` out), ``defaults`` (the classes' defaults as a
+params file writes them), ``profiles`` (profile switching), ``tiny`` (any profile at tiny scale), ``describe`` (what
+will run).
 """
 
 from adaptdiffuser.config.describe import describe, stage_names
@@ -30,7 +35,7 @@ from adaptdiffuser.config.sections import (
     PlannerParams,
     PretrainParams,
 )
-from adaptdiffuser.config.sweep import SWEEP_OBJECTIVES, SearchDimension, SweepParams, set_dotted
+from adaptdiffuser.config.sweep_settings import SWEEP_OBJECTIVES, SearchDimension, SweepParams, set_dotted
 from adaptdiffuser.config.tasks import GENERIC_SECTIONS, TaskParams
 
 __all__ = [

@@ -1,4 +1,10 @@
-"""Loading ``params.yaml``: YAML into :class:`Params`, every problem a one-line :class:`ConfigError`."""
+"""Loading ``params.yaml``: YAML into :class:`Params`, every problem a one-line :class:`ConfigError`.
+
+A params file writes every key of the generic sections (:func:`missing_keys`): the defaults live in the config
+classes and the profiles overlay them, and ``adaptdiffuser profile`` writes the result with every value resolved
+(:func:`adaptdiffuser.config.profiles.apply_profile`, which says why the classes hold the defaults). A task entry may
+leave family keys to its family's defaults; ``adaptdiffuser check`` names each one it takes
+(:func:`adaptdiffuser.config.defaults.unwritten`)."""
 
 from __future__ import annotations
 
@@ -13,7 +19,7 @@ from pydantic import TypeAdapter, ValidationError
 
 from adaptdiffuser.config.errors import ConfigError, config_error
 from adaptdiffuser.config.params import Params
-from adaptdiffuser.config.sweep import check_space
+from adaptdiffuser.config.sweep_settings import check_space
 
 __all__ = ["ConfigError", "load_params", "params_from_dict"]
 

@@ -23,8 +23,8 @@ from adaptdiffuser.config.sections import (
     PlannerParams,
     PretrainParams,
 )
-from adaptdiffuser.config.sweep import SweepParams
-from adaptdiffuser.config.tasks import GENERIC_SECTIONS, TaskParams, build_task, check_task
+from adaptdiffuser.config.sweep_settings import SweepParams
+from adaptdiffuser.config.tasks import GENERIC_SECTIONS, TaskParams, build_task
 
 DEFAULT_TASK = "maze2d-umaze"
 
@@ -63,7 +63,7 @@ class Params:
     evolution: EvolutionParams = field(default_factory=EvolutionParams)
     alpha: Float = 0.0
     compile: CompileParams = field(default_factory=CompileParams)  # torch.compile of the U-Net (docs/speed.md)
-    seeds: tuple[Seed, ...] = (0,)  # training seeds: every training stage runs once per seed (see seeding.py)
+    seeds: tuple[Seed, ...] = (0,)  # training seeds: every training stage runs once per seed (see derived_seeds.py)
     phases: tuple[PhaseParams, ...] = ()  # from a mapping phase<k>: {previous: j, <evolution overrides>}
     sweep: SweepParams = field(default_factory=SweepParams)
 
@@ -212,6 +212,25 @@ def check_cross_fields(p: Params) -> None:
                     f"{p.evolved.family} family ({p.evolve}); choose one of {list(recipes)}"
                 )
     check_data_sources(p)
+
+
+def check_task(task: TaskParams, params: Params) -> None:
+    """The checks that span a task's sections: the U-Net's horizon, sampler steps, and the family's own."""
+    where = f"task.{task.name}"
+    factor = 2 ** (len(task.model.dim_mults) - 1)
+    if task.diffusion.horizon % factor:
+        raise ConfigError(
+            f"{where}.diffusion.horizon: must be divisible by {factor} (the U-Net halves it "
+            f"{len(task.model.dim_mults) - 1} times; see model.dim_mults), got {task.diffusion.horizon}"
+        )
+    if task.planner.sampler_steps > task.diffusion.n_steps:
+        raise ConfigError(
+            f"{where}.planner.sampler_steps: {task.planner.sampler_steps} exceeds diffusion.n_steps="
+            f"{task.diffusion.n_steps}"
+        )
+    check = getattr(task.settings, "check", None)
+    if check is not None:
+        check(task, params)
 
 
 def check_data_sources(p: Params) -> None:

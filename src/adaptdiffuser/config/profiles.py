@@ -1,4 +1,5 @@
-"""Profiles: ``profiles/quick.yaml`` overlaid with ``profiles/<name>.yaml``, written as ``params.yaml``.
+"""Profiles: the config classes' defaults overlaid with ``profiles/quick.yaml`` and ``profiles/<name>.yaml``,
+written as ``params.yaml`` with every value resolved (:func:`apply_profile`).
 
 A profile may start from shared parts with ``extends: <part>`` or ``extends: [<part>, ...]``: files under
 ``profiles/parts/`` (named without ``.yaml``, e.g. ``two-phases``), overlaid in order before the profile's own keys;
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import yaml
 
+from adaptdiffuser.config.defaults import complete
 from adaptdiffuser.config.errors import ConfigError
 from adaptdiffuser.config.loader import load_params, params_from_dict, read_yaml_mapping
 from adaptdiffuser.config.merge import deep_merge
@@ -27,47 +29,66 @@ PARTS_DIR = "parts"
 NOT_A_MAPPING = "a profile or part must be a mapping of params keys"
 #: the profile key whose per-family settings are expanded into task entries (:func:`expand_family_defaults`)
 FAMILY_DEFAULTS = "family_defaults"
+#: the profile every profile starts from
+BASE_PROFILE = "quick"
 
 
 def apply_profile(
     profile: str, profiles_dir: str | Path = "profiles", params_path: str | Path = "params.yaml", tiny: bool = False
 ) -> Path:
-    """Write ``params.yaml`` as the quick profile overlaid with ``profiles/<profile>.yaml`` and the parts it
-    extends (:func:`profile_layers`); validate first. With ``tiny``, the profile at tiny scale
-    (:mod:`adaptdiffuser.config.tiny`)."""
+    """Write ``params.yaml`` as ``profiles/<profile>.yaml`` resolved; validate first. With ``tiny``, the profile at
+    tiny scale (:mod:`adaptdiffuser.config.tiny`).
+
+    Every default is stated once: by the config classes (the generic sections in
+    :mod:`adaptdiffuser.config.sections`, each family's task model in its ``params.py``). A profile is an overlay
+    over them: the quick profile (``profiles/quick.yaml``, the base of every profile, stating only where it differs
+    from the classes), then the parts the profile extends (:func:`profile_layers`), then the profile's own keys;
+    ``family_defaults`` are expanded into the task entries (:func:`expand_family_defaults`). The classes hold the
+    defaults, rather than a base profile holding every value, because the code and the tests build sections from
+    them (``PretrainParams(steps=10)``) and then mean the same values the profiles do. The file written holds every
+    value resolved (:func:`adaptdiffuser.config.defaults.complete`): a run uses only what it writes, and DVC
+    tracks each key a stage depends on."""
 
     profiles_dir = Path(profiles_dir)
-    base_path = profiles_dir / "quick.yaml"
+    base_path = profiles_dir / f"{BASE_PROFILE}.yaml"
     overlay_path = profiles_dir / f"{profile}.yaml"
     if "/" in profile or "\\" in profile or not overlay_path.exists():
         known = sorted(p.stem for p in profiles_dir.glob("*.yaml"))
         raise ConfigError(f"unknown profile {profile!r}; known profiles: {known}")
-    base_text = base_path.read_text()
     base = read_yaml_mapping(base_path, NOT_A_MAPPING)
     if "extends" in base:
         raise ConfigError(f"{base_path}: the quick profile is the base of every profile and extends nothing")
-    layers = profile_layers(overlay_path, profiles_dir / PARTS_DIR)
+    layers = [] if profile == BASE_PROFILE else profile_layers(overlay_path, profiles_dir / PARTS_DIR)
     merged = base
     for _, overlay in layers:
         merged = deep_merge(merged, overlay)
-    merged = expand_family_defaults(merged, overlay_path)
+    merged = complete(expand_family_defaults(merged, overlay_path))
     if tiny:
         merged = shrink(merged, params_from_dict(merged))
-    if merged == base:  # the quick profile itself: keep its comments
-        text = base_text
-    else:
-        how = " at tiny scale (--tiny; its scores mean nothing)" if tiny else ""
-        files = " + ".join(f"profiles/{path.relative_to(profiles_dir).as_posix()}" for path, _ in layers)
-        header = (
-            f"# Written by `adaptdiffuser profile {profile}{' --tiny' if tiny else ''}`: profiles/quick.yaml + "
-            f"{files}{how}\n"
-        )
-        text = header + yaml.safe_dump(merged, sort_keys=False)
+    how = " at tiny scale (--tiny; its scores mean nothing)" if tiny else ""
+    files = "".join(f" + profiles/{path.relative_to(profiles_dir).as_posix()}" for path, _ in layers)
+    header = (
+        f"# Written by `adaptdiffuser profile {profile}{' --tiny' if tiny else ''}`: the defaults of the config "
+        f"classes + profiles/{BASE_PROFILE}.yaml{files}{how}.\n"
+        "# Every value is resolved here; change the profiles (or `adaptdiffuser set key=value`), not the defaults.\n"
+    )
     params_path = Path(params_path)
     with atomic_path(params_path) as tmp:
-        tmp.write_text(text)
+        tmp.write_text(header + yaml.dump(merged, Dumper=_ParamsDumper, sort_keys=False))
         load_params(tmp)
     return params_path
+
+
+class _ParamsDumper(yaml.SafeDumper):
+    """YAML as a params file reads best: a list of plain values on one line (``seeds: [0, 1, 2]``)."""
+
+
+def _represent_list(dumper: yaml.SafeDumper, value: list) -> yaml.Node:
+    flow = all(isinstance(item, str | int | float | bool) or item is None for item in value)
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", value, flow_style=flow)
+
+
+_ParamsDumper.add_representer(list, _represent_list)
 
 
 def profile_layers(path: Path, parts_dir: Path, chain: tuple[Path, ...] = ()) -> list[tuple[Path, dict]]:

@@ -9,7 +9,7 @@ import dataclasses
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from pydantic import TypeAdapter, ValidationError
 
@@ -22,9 +22,6 @@ from adaptdiffuser.config.sections import (
     PlannerParams,
     PretrainParams,
 )
-
-if TYPE_CHECKING:
-    from adaptdiffuser.config.params import Params
 
 #: the generic sections a task entry may override, and their models
 GENERIC_SECTIONS: dict[str, type] = {
@@ -101,22 +98,3 @@ def build_task(name: str, entry: Any, generic: Mapping[str, Any]) -> TaskParams:
         except ValidationError as err:
             raise config_error(err, cls, prefix=f"{where}.{key}") from None
     return TaskParams(name=str(name), family=family, settings=settings, **sections, entry=dict(entry))
-
-
-def check_task(task: TaskParams, params: Params) -> None:
-    """The checks that span a task's sections: the U-Net's horizon, sampler steps, and the family's own."""
-    where = f"task.{task.name}"
-    factor = 2 ** (len(task.model.dim_mults) - 1)
-    if task.diffusion.horizon % factor:
-        raise ConfigError(
-            f"{where}.diffusion.horizon: must be divisible by {factor} (the U-Net halves it "
-            f"{len(task.model.dim_mults) - 1} times; see model.dim_mults), got {task.diffusion.horizon}"
-        )
-    if task.planner.sampler_steps > task.diffusion.n_steps:
-        raise ConfigError(
-            f"{where}.planner.sampler_steps: {task.planner.sampler_steps} exceeds diffusion.n_steps="
-            f"{task.diffusion.n_steps}"
-        )
-    check = getattr(task.settings, "check", None)
-    if check is not None:
-        check(task, params)

@@ -14,10 +14,10 @@ from adaptdiffuser.checkpoint import load_bundle, save_bundle
 from adaptdiffuser.config import Params, PretrainParams, TaskParams
 from adaptdiffuser.data.schema import read_trajectories
 from adaptdiffuser.data.windows import MixedWindowDataset, WindowDataset
+from adaptdiffuser.derived_seeds import derive_seed, training_seed
 from adaptdiffuser.io import atomic_dir
 from adaptdiffuser.layout import model_dir, phase_models_dir, phase_name, resume_path, selected_path
 from adaptdiffuser.plots import save_loss_curve
-from adaptdiffuser.seeding import derive_seed, training_seed
 from adaptdiffuser.stages.common import file_digest
 from adaptdiffuser.stages.training_data import code_digest, expert_training_data
 from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run

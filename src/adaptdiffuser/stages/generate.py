@@ -12,11 +12,11 @@ from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import GenerateParams, Params
 from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.schema import write_trajectories
+from adaptdiffuser.derived_seeds import derive_seed, training_seed
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import generated_path, model_dir
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed, training_seed
 from adaptdiffuser.tooling.mlflow_logging import stage_run
 
 

@@ -78,10 +78,11 @@ def evaluate_kept(
     eval_seed: int,
     device: torch.device,
     progress: bool = False,
-) -> dict[str, dict[str, float | int]]:
+) -> dict[str, dict]:
     """Play kept model ``name`` (and its control, if it names one) on ``episodes`` episodes whose start states come
     from ``eval_seed``, under its run's params and reference scores. Returns ``{"model": metrics}``, plus
-    ``{"control": metrics, "gain": paired gain}`` for a model with a control."""
+    ``{"control": metrics, "gain": paired gain}`` for a model with a control, and ``{"episode_scores": {role:
+    scores}}`` (each episode's normalized score, in episode order) for intervals over several seeds."""
     manifest = load_manifest(root)
     if name not in manifest.models:
         raise StageError(f"{name}: no such kept model (listed: {', '.join(sorted(manifest.models))})")
@@ -96,6 +97,7 @@ def evaluate_kept(
         out[role] = metrics
     if "control" in scores:
         out["gain"] = paired_gain(scores["model"], scores["control"])
+    out["episode_scores"] = {role: [float(x) for x in values] for role, values in scores.items()}
     return out
 
 

@@ -1,12 +1,13 @@
-"""Training seeds run apart, pooled: the saved runs (``long_run.sh save`` folders) of one profile that differ only in
-``seeds``, merged into the metrics and summaries one run over all their seeds writes.
+"""Training seeds run apart, pooled: runs of one profile that differ only in ``seeds`` (folders holding a run's
+``params.yaml`` and ``metrics/``, or DVC experiments, one per seed, as ``adaptdiffuser seeds queue`` queues them),
+merged into the metrics and summaries one run over all their seeds writes.
 
-A science profile's three seeds may take longer than a machine lasts; run one seed at a time
-(``long_run.sh start ... --set 'seeds=[1]'``), save each, and pool them. A training seed's training, generation and
-evaluation depend on that seed alone (``seeding.training_seed``), and every metrics file holds each seed's metrics
-beside their aggregate (``seed_metrics.over_seeds``), so the pooled files are the ones the three-seed run writes.
-Each set of task metrics a run holds is pooled: ``metrics/tasks/`` (its last pass) and every per-pass copy under
-``metrics/science/<name>/`` (``scripts/science_maze.sh``: one a recipe), each with its summary.
+A science profile's seeds may take longer than a machine lasts, or run faster side by side on more hardware: run
+one seed per run (``dvc queue start -j N`` runs N queued seeds at once) and pool them. A training seed's training,
+generation and evaluation depend on that seed alone (``derived_seeds.training_seed``), and every metrics file
+holds each seed's metrics beside their aggregate (``seed_metrics.over_seeds``), so the pooled files are the ones
+the multi-seed run writes. Each set of task metrics a run holds is pooled: ``metrics/tasks/`` (its last pass) and every
+per-pass copy under ``metrics/science/<name>/`` (``scripts/science_maze.sh``: one a recipe), each with its summary.
 """
 
 from __future__ import annotations
@@ -27,34 +28,40 @@ from adaptdiffuser.io import atomic_dir, write_json
 from adaptdiffuser.layout import SUMMARY
 from adaptdiffuser.seed_metrics import over_seeds
 from adaptdiffuser.stages.summarize import build_summary
+from adaptdiffuser.tooling.dvc_experiments import export_experiment
 
 TASKS_SET = "tasks"  # metrics/tasks/: the run's own (its last pass)
 
 
 @dataclass(frozen=True)
 class SavedRun:
-    """One saved run: its folder, params (as written), training seeds and the digest of each task's code."""
+    """One run: its folder, params (as written), training seeds, the digest of each task's code (from its
+    ``dvc.lock``, where it has one) and how errors name it (its folder, or its experiment)."""
 
     folder: Path
     raw: dict[str, Any]
     seeds: tuple[int, ...]
     code: dict[str, str]
+    label: str
 
 
 def load_run(folder: Path) -> SavedRun:
-    """A ``long_run.sh save`` folder; a clear error for a folder that is not one."""
+    """A run's folder (``params.yaml``, ``metrics/``, optionally ``dvc.lock`` and ``run.json``); a clear error for a
+    folder that is not one."""
     params_path, lock_path = folder / "params.yaml", folder / "dvc.lock"
-    for path in (params_path, lock_path, folder / "metrics"):
+    for path in (params_path, folder / "metrics"):
         if not path.exists():
-            raise StageError(f"{folder} is not a saved run: it has no {path.name} (bash scripts/long_run.sh save)")
+            raise StageError(f"{folder} is not a run's folder: it has no {path.name}")
     raw = yaml.safe_load(params_path.read_text())
     seeds = tuple(params_from_dict(raw).seeds)
     code: dict[str, str] = {}
-    for stage in (yaml.safe_load(lock_path.read_text()) or {}).get("stages", {}).values():
+    lock = yaml.safe_load(lock_path.read_text()) if lock_path.exists() else None
+    for stage in (lock or {}).get("stages", {}).values():
         for dep in stage.get("deps", []):
             if dep["path"].startswith("code/"):
                 code[dep["path"]] = dep["md5"]
-    return SavedRun(folder, raw, seeds, code)
+    experiment = _run_record(folder).get("experiment")
+    return SavedRun(folder, raw, seeds, code, f"experiment {experiment}" if experiment else str(folder))
 
 
 def _first_difference(a: Any, b: Any, key: str = "") -> str | None:
@@ -70,22 +77,22 @@ def _first_difference(a: Any, b: Any, key: str = "") -> str | None:
 
 def check_poolable(runs: list[SavedRun]) -> None:
     """Runs pool only when their params differ in ``seeds`` alone, no seed is in two of them and their tasks ran
-    the same code; a one-line error naming the first that does not hold."""
+    the same code (where their ``dvc.lock`` says); a one-line error naming the first that does not hold."""
     if len(runs) < 2:
-        raise StageError("pooling needs two saved runs or more")
+        raise StageError("pooling needs two runs or more")
     first = runs[0]
-    owner = {seed: first.folder for seed in first.seeds}
+    owner = {seed: first.label for seed in first.seeds}
     for run in runs[1:]:
         key = _first_difference({**first.raw, "seeds": None}, {**run.raw, "seeds": None})
         if key is not None:
-            raise StageError(f"{run.folder} and {first.folder} differ in {key!r}, not only in seeds: they do not pool")
+            raise StageError(f"{run.label} and {first.label} differ in {key!r}, not only in seeds: they do not pool")
         for path in sorted(set(first.code) & set(run.code)):
             if first.code[path] != run.code[path]:
-                raise StageError(f"{run.folder} and {first.folder} ran other code ({path} differs): they do not pool")
+                raise StageError(f"{run.label} and {first.label} ran other code ({path} differs): they do not pool")
         for seed in run.seeds:
             if seed in owner:
-                raise StageError(f"training seed {seed} is in both {owner[seed]} and {run.folder}")
-            owner[seed] = run.folder
+                raise StageError(f"training seed {seed} is in both {owner[seed]} and {run.label}")
+            owner[seed] = run.label
 
 
 def metric_sets(folder: Path) -> dict[str, Path]:
@@ -139,9 +146,9 @@ def pool_set(folders: list[Path], into: Path, tasks: set[str], committed: dict[s
 
 
 def committed_task_metrics(repo: Path, commit: str | None) -> dict[str, bytes]:
-    """The files under ``metrics/tasks/`` of ``commit`` in the git repository ``repo`` (relative to it), which
-    ``long_run.sh save`` leaves out of a save when the run wrote them unchanged (a reference the commit holds); none
-    when the commit is not there."""
+    """The files under ``metrics/tasks/`` of ``commit`` in the git repository ``repo`` (relative to it), which a
+    run's folder leaves out when the run wrote them as its commit holds them (a reference); none when the commit is
+    not there."""
     if not commit:
         return {}
     git = ["git", "-C", str(repo)]
@@ -164,11 +171,26 @@ def summary_of(params_raw: dict[str, Any], tasks_dir: Path) -> dict[str, Any]:
         return build_summary(params_from_dict(params_raw), Path(scratch))
 
 
-def pool_runs(folders: list[Path], into: Path, repo: Path | None = None) -> list[str]:
-    """Pool the saved runs in ``folders`` into ``into`` (replaced whole, or left as it was on an error):
-    ``params.yaml`` with every seed, each set of task metrics all runs hold with its summary (``metrics/summary.json``
-    for ``metrics/tasks/``, ``metrics/science/<name>.json`` for a pass), and ``run.json`` naming the runs. Returns
-    one line per set pooled and per file left out."""
+def pool_runs(
+    folders: list[Path], into: Path, repo: Path | None = None, experiments: list[str] | tuple[str, ...] = ()
+) -> list[str]:
+    """Pool the runs in ``folders`` and the DVC ``experiments`` of ``repo`` (default: the working directory) into
+    ``into`` (replaced whole, or left as it was on an error): ``params.yaml`` with every seed, each set of task
+    metrics all runs hold with its summary (``metrics/summary.json`` for ``metrics/tasks/``,
+    ``metrics/science/<name>.json`` for a pass), and ``run.json`` naming the runs. Returns one line per set pooled
+    and per file left out."""
+    repo = repo or Path.cwd()
+    with tempfile.TemporaryDirectory() as scratch:
+        exported = []
+        for i, name in enumerate(experiments):
+            folder = Path(scratch) / f"experiment{i}"
+            folder.mkdir()
+            export_experiment(repo, name, folder)
+            exported.append(folder)
+        return _pool([*folders, *exported], into, repo)
+
+
+def _pool(folders: list[Path], into: Path, repo: Path) -> list[str]:
     runs = [load_run(folder) for folder in folders]
     check_poolable(runs)
     seeds = sorted(seed for run in runs for seed in run.seeds)
@@ -189,7 +211,7 @@ def pool_runs(folders: list[Path], into: Path, repo: Path | None = None) -> list
         write_json(build / "run.json", {"pooled": records, "seeds": seeds})
         for name in names:
             target = build / "metrics" / name
-            committed = committed_task_metrics(repo or Path.cwd(), commits[0]) if name == TASKS_SET else {}
+            committed = committed_task_metrics(repo, commits[0]) if name == TASKS_SET else {}
             left_out = pool_set([s[name] for s in sets], target, tasks, committed if len(set(commits)) == 1 else {})
             lines += [f"{name}: {rel} left out (not in every run)" for rel in left_out]
             summary_path = SUMMARY if name == TASKS_SET else Path("metrics") / f"{name}.json"
@@ -203,5 +225,7 @@ def pool_runs(folders: list[Path], into: Path, repo: Path | None = None) -> list
 
 def _run_record(folder: Path) -> dict[str, Any]:
     record = json.loads((folder / "run.json").read_text()) if (folder / "run.json").exists() else {}
+    if "experiment" in record:  # exported into a scratch folder: named by the experiment and its commit alone
+        return {key: record[key] for key in ("experiment", "experiment_commit", "commit")}
     kept = ("commit", "profile", "settings", "cpu")
     return {"folder": str(folder), **{key: record[key] for key in kept if key in record}}

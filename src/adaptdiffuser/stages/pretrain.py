@@ -17,7 +17,7 @@ from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir, phase_models_dir, resume_path, value_resume_path
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.stages.training_data import code_digest, expert_training_data, pretrain_config
-from adaptdiffuser.stages.value import run_value
+from adaptdiffuser.stages.value_function import run_value
 from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run
 from adaptdiffuser.training import fingerprint, train
 

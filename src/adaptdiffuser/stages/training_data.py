@@ -11,8 +11,8 @@ import numpy as np
 from adaptdiffuser.config import PretrainParams, TaskParams
 from adaptdiffuser.data.schema import Trajectories, read_trajectories
 from adaptdiffuser.data.windows import subset_episodes
+from adaptdiffuser.derived_seeds import training_seed
 from adaptdiffuser.layout import dataset_path
-from adaptdiffuser.seeding import training_seed
 from adaptdiffuser.stages.common import file_digest
 from adaptdiffuser.tooling.code_fingerprint import fingerprint_path
 

@@ -18,6 +18,7 @@ from tqdm import tqdm
 from adaptdiffuser.config import DiscriminateParams, GenerateParams, TaskParams
 from adaptdiffuser.contract import Judgement, TrackedTrajectory
 from adaptdiffuser.data.schema import SchemaError, Trajectories
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.evaluation import run_episodes
 from adaptdiffuser.evolution.discriminator import SelectionRule, generic_selection_rule, passes_tracking, select
 from adaptdiffuser.families.kuka.dataset import state_episodes
@@ -29,7 +30,6 @@ from adaptdiffuser.families.kuka.execution import (
 from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_JOINTS
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 from adaptdiffuser.families.kuka.tasks import block_positions
-from adaptdiffuser.seeding import derive_seed
 
 SETUP_COLUMN = "pick_place_setup"
 #: the columns the reference's tracking check compares: the joints and the suction flags

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from adaptdiffuser.contract import Controller
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.diffusion.conditions import Projection
 from adaptdiffuser.diffusion.guidance import GuidanceBase, Objective
 from adaptdiffuser.families.kuka.scene import (
@@ -23,7 +24,6 @@ from adaptdiffuser.families.kuka.scene import (
     covered_blocks,
 )
 from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS, block_positions, placed_blocks
-from adaptdiffuser.seeding import derive_seed
 
 if TYPE_CHECKING:
     from adaptdiffuser.config import TaskParams

@@ -29,13 +29,13 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from adaptdiffuser.data.schema import Trajectories, make_metadata
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.families.locomotion.band import Band, BandNotReachedError, SearchState, search_band
 from adaptdiffuser.families.locomotion.params import BehaviourSettings
 from adaptdiffuser.families.locomotion.reference import normalized_score
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator, env_id_of, parse_task_name
 from adaptdiffuser.io import atomic_path, write_json
-from adaptdiffuser.seeding import derive_seed
 
 Policy = Callable[[np.ndarray], np.ndarray]
 

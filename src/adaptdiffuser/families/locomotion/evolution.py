@@ -18,10 +18,10 @@ from tqdm import tqdm
 from adaptdiffuser.config import DiscriminateParams, GenerateParams, TaskParams
 from adaptdiffuser.contract import Judgement, TaskFiles, TrackedTrajectory
 from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata, read_trajectories
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.evolution.discriminator import SelectionRule, generic_selection_rule, select
 from adaptdiffuser.families.locomotion.params import PAPER_THRESHOLDS
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator
-from adaptdiffuser.seeding import derive_seed
 
 START_COLUMN = "task_start_state"
 

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from adaptdiffuser.config.errors import ConfigError
-from adaptdiffuser.config.value import ValueSettings
+from adaptdiffuser.config.value_settings import ValueSettings
 
 if TYPE_CHECKING:
     from adaptdiffuser.config.params import Params

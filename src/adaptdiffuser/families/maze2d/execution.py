@@ -8,10 +8,10 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from adaptdiffuser.contract import Controller
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.diffusion.guidance import Guidance
 from adaptdiffuser.families.maze2d.simulator import PlanningEnv
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed
 
 
 class PlanFollower:

@@ -13,9 +13,9 @@ from tqdm import tqdm
 
 from adaptdiffuser.contract import TrackedTrajectory
 from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed
 
 TASK_COLUMNS = ("task_id", "task_start", "task_goal")
 

@@ -37,12 +37,19 @@ CUSTOM_EPISODE_STEPS = 300  # what the simulator uses for a custom layout when e
 
 @dataclass(frozen=True, config=SECTION)
 class EnvParams:
+    #: a custom maze: list of strings, '#' wall, '.' free, 'G' evaluation goal (None: ``maze``)
     layout: list[Str] | None = None
+    #: umaze | medium | large (ignored when layout is set)
     maze: Str = "umaze"
+    #: None = the protocol's length for the maze (300 / 600 / 800)
     episode_steps: PositiveInt | None = None
+    #: reward 1 at every step within this distance of the goal
     goal_radius: PositiveFloat = 0.5
+    #: start = random free cell centre + U(-noise, noise)
     reset_pos_noise: NonNegativeFloat = 0.1
+    #: start velocity ~ N(0, noise^2)
     reset_vel_noise: NonNegativeFloat = 0.1
+    #: each episode draws a random goal cell (D4RL's "multi" variant)
     random_goal: Bool = False
 
     @field_validator("layout")
@@ -62,22 +69,31 @@ class EnvParams:
 
 @dataclass(frozen=True, config=SECTION)
 class ExpertParams:
+    """D4RL's waypoint controller (the data and R_max)."""
+
     p_gain: PositiveFloat = 10.0
     d_gain: Float = 1.0
+    #: non-final waypoints shifted by -U(0, jitter)
     jitter: NonNegativeFloat = 0.2
+    #: move to the next waypoint within this distance
     waypoint_radius: PositiveFloat = 0.3
 
 
 @dataclass(frozen=True, config=SECTION)
 class CollectParams:
+    #: expert steps (paper profiles: 1e6 U-Maze, 2e6 Medium, 4e6 Large)
     steps: PositiveInt = 200_000
     seed: Seed = 0
 
 
 @dataclass(frozen=True, config=SECTION)
 class GoldCoinParams:
+    """The unseen task: reach the goal and pick up a coin on the way (no expert coin data)."""
+
+    #: fixed evaluation cases per kind: coin on the path, off it, behind the start
     cases_per_kind: PositiveInt = 10
     seed: Seed = 2000
+    #: the coin is picked when the agent passes within this distance
     radius: PositiveFloat = 0.5
     batch_size: PositiveInt = 50
     pictures: NonNegativeInt = 3

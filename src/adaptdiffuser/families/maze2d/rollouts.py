@@ -21,12 +21,12 @@ import torch
 from tqdm import tqdm
 
 from adaptdiffuser.contract import TrackedTrajectory
+from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.families.maze2d.execution import PlanFollower
 from adaptdiffuser.families.maze2d.generation import NavigationTasks
 from adaptdiffuser.families.maze2d.gold_coin import CoinObjective
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.seeding import derive_seed
 
 #: column of a generated rollouts file: the tracking error of the step into each row's state (0 for the first row)
 ERROR_COLUMN = "tracking_error"

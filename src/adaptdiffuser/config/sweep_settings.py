@@ -80,17 +80,25 @@ def search_dimension(key: str, spec: Any) -> SearchDimension:
 
 @dataclass(frozen=True, config=SECTION)
 class SweepParams:
+    """``adaptdiffuser sweep``: Optuna over the keys of ``space`` (phase 0 is reused, never retrained)."""
+
     study: Str = "adaptdiffuser"
     task: Str | None = None  # the task whose evolution phases the trials run; null = `evolve`
     trials: PositiveInt = 4
     workers: PositiveInt = 2
     seed: Seed = 0
+    #: gain (final phase - its control) | score | unseen (the unseen task's figure, 0-100) | mix of score and unseen
     objective: Annotated[Str, one_of(*SWEEP_OBJECTIVES)] = "gain"
     evaluate_seed: Seed = 5000  # the trials' evaluation episodes: never the pipeline's (evaluate.seed)
+    #: mix = (1 - w) x score + w x unseen
     unseen_weight: Annotated[Float, UNIT] = 0.5
+    #: None = journal file sweeps/<study>.journal; or postgresql://user@host/db
     storage: Str | None = None
+    #: RDB storages: a trial silent this long (x2) is failed and retried once
     heartbeat_s: PositiveInt = 30
+    #: median pruning after each phase, once this many trials completed
     pruner_startup_trials: NonNegativeInt = 1
+    #: params key: {low, high, log?, int?} or {choices: [...]}
     space: tuple[SearchDimension, ...] = field(default=())
 
     @field_validator("space", mode="before")

@@ -13,14 +13,14 @@ import torch
 from adaptdiffuser.checkpoint import ModelBundle, load_bundle
 from adaptdiffuser.config import Params
 from adaptdiffuser.config.tasks import TaskParams
-from adaptdiffuser.config.value import ValueSettings
+from adaptdiffuser.config.value_settings import ValueSettings
 from adaptdiffuser.data.returns import ValueWindowDataset
 from adaptdiffuser.data.schema import Trajectories
 from adaptdiffuser.data.windows import take_episodes
+from adaptdiffuser.derived_seeds import derive_seed, training_seed
 from adaptdiffuser.layout import model_dir, value_dir, value_resume_path
-from adaptdiffuser.models.value import ValueNetwork
+from adaptdiffuser.models.value_network import ValueNetwork
 from adaptdiffuser.plots import save_loss_curve
-from adaptdiffuser.seeding import derive_seed, training_seed
 from adaptdiffuser.stages.training_data import code_digest, expert_training_data, pretrain_config
 from adaptdiffuser.tooling.mlflow_logging import stage_run
 from adaptdiffuser.training import LogFn, fingerprint
