@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.cli import app
-from adaptdiffuser.stages.kept_models import MANIFEST, evaluate_kept, load_manifest
+from adaptdiffuser.stages.kept_models import MANIFEST, evaluate_kept, evaluate_kept_seeds, load_manifest
 
 GENERATED = (".parquet", ".npz", ".pkl", ".h5", ".hdf5")
 KEPT_FILES = ("ema.pt", "normalizer.json", "config.json")
@@ -64,6 +64,19 @@ def test_a_kept_model_scores_what_it_supports_on_its_evaluation_episodes() -> No
     assert out["gain"]["gain_mean"] == pytest.approx(supports["gain_mean"], abs=1.0)
     control = load_manifest(REPO).models["maze2d-large/seed2/phase1-control"].supports
     assert out["control"]["score_mean"] == pytest.approx(control["score_mean"], abs=1.0)
+
+
+def test_kept_models_of_several_seeds_play_their_own_start_states_and_give_an_interval() -> None:
+    names = ["maze2d-large/seed0/phase1-rollouts", "maze2d-large/seed1/phase1-rollouts"]
+    cpu = torch.device("cpu")
+    out = evaluate_kept_seeds(REPO, names, episodes=4, eval_seed=3000, device=cpu)
+    assert out["eval_seeds"] == {names[0]: 3000, names[1]: 3001}
+    alone = evaluate_kept(REPO, names[1], episodes=4, eval_seed=3001, device=cpu)
+    assert out["models"][names[1]]["episode_scores"] == alone["episode_scores"]
+    gain = out["interval"]["gain"]
+    assert (gain["n_seeds"], gain["n_episodes"]) == (2, 4) and gain["ci_low"] <= gain["mean"] <= gain["ci_high"]
+    same = evaluate_kept_seeds(REPO, names, episodes=4, eval_seed=3000, device=cpu, own_start_states=False)
+    assert same["eval_seeds"] == {names[0]: 3000, names[1]: 3000}
 
 
 def test_evaluate_kept_refuses_an_unknown_model_in_one_line(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -552,29 +552,50 @@ def seeds_queue(
 
 @app.command("evaluate-kept")
 def evaluate_kept(
-    name: Annotated[str, typer.Argument(help="a model of metrics/kept-models.json (maze2d-large/seed2/phase1-plans)")],
-    episodes: Annotated[int, typer.Option(min=1, help="episodes to play")] = 500,
-    eval_seed: Annotated[int, typer.Option(min=0, help="the seed of their start states")] = 5000,
-    into: Annotated[Path | None, typer.Option(help="also write the metrics to this JSON file")] = None,
+    names: Annotated[
+        list[str], typer.Argument(help="models of metrics/kept-models.json (maze2d-large/seed2/phase1-plans ...)")
+    ],
+    episodes: Annotated[int, typer.Option(min=1, help="episodes to play per model")] = 500,
+    eval_seed: Annotated[
+        int, typer.Option(min=0, help="the seed of the start states (plus each training seed)")
+    ] = 5000,
+    own_start_states: Annotated[
+        bool, typer.Option("--own-start-states/--same-start-states", help="offset the seed by the training seed")
+    ] = True,
+    into: Annotated[Path | None, typer.Option(help="also write the metrics and episode scores to this JSON")] = None,
     device: Device = "auto",
     progress: Progress = True,
 ) -> None:
-    """Score a kept model (and its equal-compute control, on the same episodes: the paired gain) on start states of
-    your choice, under the params and reference scores of the run that made it."""
+    """Score kept models (each with its equal-compute control on the same episodes: the paired gain) on start states
+    of your choice, each training seed on its own, under the params and reference scores of the run that made it;
+    with several models, the mean over them and its two-level bootstrap 95 % interval (seeds, then episodes)."""
     from adaptdiffuser.io import write_json
     from adaptdiffuser.stages.common import resolve_device
-    from adaptdiffuser.stages.kept_models import evaluate_kept as run
+    from adaptdiffuser.stages.kept_models import evaluate_kept_seeds
 
-    out = _guarded(lambda: run(Path.cwd(), name, episodes, eval_seed, resolve_device(device), progress))
-    for role, m in out.items():
-        if role == "episode_scores":
-            continue
-        if role == "gain":
-            typer.echo(f"gain over the control: {m['gain_mean']:.1f} +- {m['gain_stderr']:.1f} (paired over episodes)")
-        else:
-            typer.echo(f"{role}: score {m['score_mean']:.1f} +- {m['score_stderr']:.1f} ({_spread(m)})")
+    out = _guarded(
+        lambda: evaluate_kept_seeds(
+            Path.cwd(), names, episodes, eval_seed, resolve_device(device), own_start_states, progress
+        )
+    )
+    for name, run in out["models"].items():
+        parts = [
+            f"{role} {m['score_mean']:.1f} +- {m['score_stderr']:.1f}"
+            for role, m in run.items()
+            if role in ("model", "control")
+        ]
+        if "gain" in run:
+            parts.append(f"gain {run['gain']['gain_mean']:.1f} +- {run['gain']['gain_stderr']:.1f}")
+        typer.echo(f"{name} (start states of seed {out['eval_seeds'][name]}, {episodes} episodes): {', '.join(parts)}")
+    if len(names) > 1:
+        for what, m in out["interval"].items():
+            extra = f", probability of improvement {m['probability_of_improvement']:.2f}" if what == "gain" else ""
+            typer.echo(
+                f"{what} over {m['n_seeds']} models: {m['mean']:.1f}, 95 % interval [{m['ci_low']:.1f}, "
+                f"{m['ci_high']:.1f}]{extra}"
+            )
     if into is not None:
-        write_json(into, {"model": name, "episodes": episodes, "eval_seed": eval_seed, **out})
+        write_json(into, {"episodes": episodes, **out})
 
 
 @app.command()

@@ -22,6 +22,7 @@ from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.evaluation import normalized_score, paired_gain, run_episodes, summarize
 from adaptdiffuser.family_registry import get_family
+from adaptdiffuser.intervals import interval, paired_interval
 from adaptdiffuser.io import read_json
 from adaptdiffuser.layout import reference_path
 from adaptdiffuser.planning import Planner
@@ -99,6 +100,34 @@ def evaluate_kept(
         out["gain"] = paired_gain(scores["model"], scores["control"])
     out["episode_scores"] = {role: [float(x) for x in values] for role, values in scores.items()}
     return out
+
+
+def evaluate_kept_seeds(
+    root: Path,
+    names: list[str],
+    episodes: int,
+    eval_seed: int,
+    device: torch.device,
+    own_start_states: bool = True,
+    progress: bool = False,
+) -> dict[str, dict]:
+    """:func:`evaluate_kept` for several kept models (one per training seed, say), each on start states of its own:
+    those of ``eval_seed + its training seed`` (``own_start_states``; else all on ``eval_seed``'s). Returns
+    ``{"models": {name: its evaluation}, "eval_seeds": {name: seed}}`` and, over the models, ``"interval"``: the mean
+    and two-level bootstrap 95 % interval (:mod:`adaptdiffuser.intervals`) of the score, and where every model has
+    a control, of the control's score and of the paired gain with its probability of improvement."""
+    manifest = load_manifest(root)
+    missing = [name for name in names if name not in manifest.models]
+    if missing:
+        raise StageError(f"{missing[0]}: no such kept model (listed: {', '.join(sorted(manifest.models))})")
+    seeds = {name: eval_seed + (manifest.models[name].training_seed if own_start_states else 0) for name in names}
+    runs = {name: evaluate_kept(root, name, episodes, seeds[name], device, progress) for name in names}
+    scores = [runs[name]["episode_scores"]["model"] for name in names]
+    summary: dict[str, dict] = {"score": interval(scores)}
+    if all("control" in runs[name]["episode_scores"] for name in names):
+        controls = [runs[name]["episode_scores"]["control"] for name in names]
+        summary |= {"control": interval(controls), "gain": paired_interval(scores, controls)}
+    return {"models": runs, "eval_seeds": seeds, "interval": summary}
 
 
 def _play(
