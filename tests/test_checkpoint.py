@@ -399,8 +399,8 @@ train(bundle, dataset, cfg, torch.device("cpu"), Path(sys.argv[2]), "run", progr
 def test_a_training_process_stopped_by_sigterm_ends_by_it_with_its_resume_state_written(
     tmp_path: Path, dataset: WindowDataset, new_bundle
 ) -> None:
-    """A real process (as a stage under `adaptdiffuser run stop`): no checkpoint falls due in its 100 000 steps, yet after
-    SIGTERM its resume state holds the step it stopped at, and it ends by the signal, as it would have at once."""
+    """A real process (as a stage under `adaptdiffuser run stop`): no checkpoint falls due in its 100 000 steps, yet
+    after SIGTERM its resume state holds the step it stopped at, and it ends by the signal, as it would have at once."""
     inputs, resume = tmp_path / "inputs.pt", tmp_path / "resume.pt"
     torch.save((new_bundle(0), dataset), inputs)
     (tmp_path / "child.py").write_text(CHILD)

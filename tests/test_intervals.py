@@ -19,14 +19,14 @@ def test_one_seed_gives_the_normal_interval_of_its_episodes() -> None:
     assert (out["n_seeds"], out["n_episodes"]) == (1, 400)
 
 
-def test_an_interval_holds_the_true_mean_about_95_times_in_100() -> None:
+def test_an_interval_holds_the_true_mean_at_least_95_times_in_100_erring_wide() -> None:
     rng = np.random.default_rng(1)
     hits = 0
     for trial in range(300):
         seeds = [rng.normal(10.0, 5.0, size=60) for _ in range(4)]
         out = interval(seeds, seed=trial, reps=2000)
         hits += out["ci_low"] <= 10.0 <= out["ci_high"]
-    assert 0.90 <= hits / 300 <= 0.99
+    assert 0.94 <= hits / 300 <= 0.995, hits  # about 0.975: both levels resampled (intervals.py)
 
 
 def test_seeds_that_disagree_widen_the_interval_beyond_their_episode_noise() -> None:

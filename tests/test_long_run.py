@@ -20,7 +20,7 @@ import yaml
 from smoke_project import REPO, make_smoke_project, run_tool, tool_env
 
 from adaptdiffuser.stages.pool import summary_of
-from adaptdiffuser.tooling.long_run import group_members, log_path
+from adaptdiffuser.tooling.long_run import group_members, log_path, stop
 
 MAZE = "maze2d-umaze"
 
@@ -31,7 +31,7 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
 
 
 def _pid(root: Path) -> int:
-    return int((root / ".dvc" / "tmp" / "long-run" / "pid").read_text())
+    return int((root / ".dvc" / "tmp" / "long-run" / "pid").read_text().split()[0])
 
 
 def _wait_for(condition: Callable[[], bool], root: Path, timeout_s: float = 600.0) -> None:
@@ -104,7 +104,7 @@ def _phase0_of_one_task(path: Path) -> None:
     its checkpoints, 100 steps apart."""
     raw = yaml.safe_load(path.read_text())
     raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={}, seeds=[0, 1])
-    raw["pretrain"] |= {"steps": 600, "checkpoint_every": 100}
+    raw["pretrain"] |= {"steps": 1000, "checkpoint_every": 100}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
 
@@ -126,13 +126,13 @@ def test_a_stopped_run_continues_on_another_machine_and_a_killed_one_where_it_is
     # stopped once the second seed's pretraining has written a whole resume state (the first seed's is finished):
     # SIGTERM to the run's process group, and the stage ends its step and writes its state there before it goes
     _wait_for((first / seed1).exists, first)
-    run_tool(["adaptdiffuser", "run", "stop"], first)
+    stop(first)  # in this process: no interpreter start between the first checkpoint and the stop
     stops = re.findall(r"SIGTERM: stopping after step (\d+),", log_path(first).read_text())
     assert len(stops) == 1, log_path(first).read_text()  # seed 1's pretraining took the stop
     stopped = int(stops[0])
     status = run_tool(["adaptdiffuser", "run", "status"], first)
     assert "stopped or killed" in status and f"pretrain@{MAZE}" in status  # dvc status: pretraining is left
-    assert f"resume state: {MAZE}-phase0-seed0.pt (step 600)" in status  # finished, kept until the stage ends
+    assert f"resume state: {MAZE}-phase0-seed0.pt (step 1000)" in status  # finished, kept until the stage ends
     assert f"resume state: {MAZE}-phase0-seed1.pt (step {stopped})" in status
 
     # the machine goes: what continues the run exactly is its resume states and DVC's run cache of the stages that
@@ -158,8 +158,8 @@ def test_a_stopped_run_continues_on_another_machine_and_a_killed_one_where_it_is
     log = log_path(second).read_text()
     assert f"Stage 'collect@{MAZE}' is cached - skipping run" in log  # the data from the run cache, not collected
     # the first seed is not trained again, the second goes on from its checkpoints, never from step 0
-    assert "resuming training from step 600" in log and f"resuming training from step {stopped} " in log
-    assert any(f"resuming training from step {step} " in log for step in range(100, 600, 100) if step > stopped)
+    assert "resuming training from step 1000" in log and f"resuming training from step {stopped} " in log
+    assert any(f"resuming training from step {step} " in log for step in range(100, 1000, 100) if step > stopped)
     status = run_tool(["adaptdiffuser", "run", "status"], second)
     assert "finished: ended by itself with exit status 0" in status, status
     assert "every stage is up to date" in status and "resume state:" not in status

@@ -97,11 +97,10 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu", ema_only: 
     models and ``model.pt`` may be absent."""
     path = Path(path)
     needed = [name for name in BUNDLE_FILES if not (ema_only and name == "model.pt")]
+    hint = "a kept model lists its files in metrics/kept-models.json" if ema_only else "run the stage that trains it"
     for name in needed:
         if not (path / name).exists():
-            raise FileNotFoundError(
-                f"checkpoint {path} is incomplete or missing: no {name} (run the stage that trains it)"
-            )
+            raise FileNotFoundError(f"checkpoint {path} is incomplete or missing: no {name} ({hint})")
     config = read_json(path / "config.json")
     model = ModelParams(**config["model"])
     diffusion = DiffusionParams(**config["diffusion"])

@@ -117,6 +117,8 @@ def evaluate_kept_seeds(
     and two-level bootstrap 95 % interval (:mod:`adaptdiffuser.intervals`) of the score, and where every model has
     a control, of the control's score and of the paired gain with its probability of improvement."""
     manifest = load_manifest(root)
+    if len(set(names)) != len(names):
+        raise StageError(f"a kept model named twice among {names}: each counts once in the interval")
     missing = [name for name in names if name not in manifest.models]
     if missing:
         raise StageError(f"{missing[0]}: no such kept model (listed: {', '.join(sorted(manifest.models))})")

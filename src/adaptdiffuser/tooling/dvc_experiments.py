@@ -87,7 +87,8 @@ def create_store(root: Path) -> None:
 def _git(root: Path, *args: str) -> str:
     out = subprocess.run(["git", *args], cwd=root, capture_output=True, text=True)
     if out.returncode != 0:
-        raise StageError(f"`git {' '.join(args)}` failed: {out.stderr.strip()}")
+        last = (out.stderr.strip().splitlines() or ["no message"])[-1]
+        raise StageError(f"`git {' '.join(args)}` failed: {last}")
     return out.stdout
 
 
@@ -107,15 +108,27 @@ def experiment_commit(root: Path, name: str) -> str:
 
 def export_experiment(root: Path, name: str, into: Path) -> str:
     """Write into ``into`` what the experiment ``name`` measured, as a run's folder: its ``params.yaml``,
-    ``dvc.lock`` and the files of ``metrics/`` that differ from its baseline commit's (what is the same there, a
-    reference, is read from the baseline), with ``run.json`` naming the experiment and its baseline. Returns the
-    baseline commit."""
+    ``dvc.lock`` and the files of ``metrics/`` its stages wrote (the outs of its ``dvc.lock``) or that differ from
+    its baseline commit's (what is neither, a reference, is read from the baseline), with ``run.json`` naming the
+    experiment and its baseline. Returns the baseline commit."""
     commit = experiment_commit(root, name)
     baseline = _git(root, "rev-parse", f"{commit}^").strip()
     changed = _git(root, "diff", "--name-only", "--no-renames", "--diff-filter=AM", baseline, commit, "--", "metrics")
     held = _git(root, "ls-tree", "-r", "--name-only", commit, "--", "params.yaml", "dvc.lock").splitlines()
-    for path in sorted(set(held) | set(changed.splitlines())):
-        blob = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=root, capture_output=True, check=True)
+    # what the experiment's stages wrote under metrics/, even where it equals the baseline's bytes (a seed that
+    # scored as the baseline's run did): the outs its dvc.lock lists
+    lock = yaml.safe_load(_git(root, "show", f"{commit}:dvc.lock")) if "dvc.lock" in held else None
+    outs = [
+        out["path"]
+        for stage in ((lock or {}).get("stages") or {}).values()
+        for out in stage.get("outs", [])
+        if str(out.get("path", "")).startswith("metrics/")
+    ]
+    written = _git(root, "ls-tree", "-r", "--name-only", commit, "--", *outs).splitlines() if outs else []
+    for path in sorted(set(held) | set(changed.splitlines()) | set(written)):
+        blob = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=root, capture_output=True)
+        if blob.returncode != 0:
+            raise StageError(f"experiment {name}: cannot read {path} at {commit[:7]}")
         (into / path).parent.mkdir(parents=True, exist_ok=True)
         (into / path).write_bytes(blob.stdout)
     record = {"experiment": name, "experiment_commit": commit, "commit": baseline}

@@ -12,6 +12,7 @@ period. Linux only: a run's processes are read from ``/proc``.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import os
 import signal
@@ -62,15 +63,35 @@ def group_members(pgid: int) -> list[int]:
     return members
 
 
-def running_pid(root: Path) -> int | None:
-    """The pid of the run of ``root`` while it runs (the leader of its process group), else None."""
+def _start_time(pid: int) -> str | None:
+    """When process ``pid`` started (clock ticks since boot), or None if it is gone: with the boot's id, what tells
+    a run's pid from the same number reused by another process."""
+    fields = _proc_stat(pid)
+    return None if fields is None else fields[19]
+
+
+def _boot_id() -> str:
     try:
-        pid = int(_pid_path(root).read_text())
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return ""
+
+
+def running_pid(root: Path) -> int | None:
+    """The pid (and process group) of the run of ``root`` while any process of it lives, else None. The leader may be
+    gone while its stages still write their resume state; a pid file of another boot, or whose leader is another
+    process under a reused pid, is not a run."""
+    try:
+        pid_text, started, boot = _pid_path(root).read_text().split()
+        pid = int(pid_text)
     except (OSError, ValueError):
         return None
-    fields = _proc_stat(pid)
-    alive = fields is not None and fields[0] != "Z" and int(fields[2]) == pid  # not a reused pid
-    return pid if alive else None
+    if boot != _boot_id():
+        return None
+    leader = _start_time(pid)
+    if leader is not None and leader != started:
+        return None  # the pid was reused
+    return pid if group_members(pid) else None
 
 
 def _check_project(root: Path) -> None:
@@ -83,10 +104,16 @@ def start(root: Path, command: Sequence[str] = DEFAULT_COMMAND) -> int:
     The project's own ``src/`` comes first on ``PYTHONPATH``, so a clone or worktree at another commit runs its own
     code with a shared virtual environment."""
     _check_project(root)
-    if (pid := running_pid(root)) is not None:
-        raise StageError(f"{root.resolve()} already runs (pid {pid}): adaptdiffuser run status")
     log = log_path(root)
     log.parent.mkdir(parents=True, exist_ok=True)
+    with (root / STATE_DIR / "lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one start at a time: from the check until the pid file is written
+        return _start_locked(root, command, log)
+
+
+def _start_locked(root: Path, command: Sequence[str], log: Path) -> int:
+    if (pid := running_pid(root)) is not None:
+        raise StageError(f"{root.resolve()} already runs (pid {pid}): adaptdiffuser run status")
     _rc_path(root).unlink(missing_ok=True)
     env = dict(os.environ, DVC_NO_ANALYTICS="1", LONG_RUN_RC=str(_rc_path(root).resolve()))
     src = (root / "src").resolve()
@@ -104,7 +131,7 @@ def start(root: Path, command: Sequence[str] = DEFAULT_COMMAND) -> int:
             start_new_session=True,
         )  # fmt: skip
     with atomic_path(_pid_path(root)) as tmp:
-        tmp.write_text(f"{child.pid}\n")
+        tmp.write_text(f"{child.pid} {_start_time(child.pid) or 0} {_boot_id()}\n")
     return child.pid
 
 
@@ -125,6 +152,10 @@ def stop(root: Path, grace_s: float = 60.0) -> bool:
         if time.monotonic() > deadline:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(pid, signal.SIGKILL)
+            for _ in range(100):  # SIGKILL is not instant: return once the group is gone (at most 10 s)
+                if not group_members(pid):
+                    break
+                time.sleep(0.1)
             return True
         time.sleep(0.2)
     return False
