@@ -114,6 +114,7 @@ def start(root: Path, command: Sequence[str] = DEFAULT_COMMAND) -> int:
 def _start_locked(root: Path, command: Sequence[str], log: Path) -> int:
     if (pid := running_pid(root)) is not None:
         raise StageError(f"{root.resolve()} already runs (pid {pid}): adaptdiffuser run status")
+    clear_stale_dvc_locks(root)
     _rc_path(root).unlink(missing_ok=True)
     env = dict(os.environ, DVC_NO_ANALYTICS="1", LONG_RUN_RC=str(_rc_path(root).resolve()))
     src = (root / "src").resolve()
@@ -161,8 +162,34 @@ def stop(root: Path, grace_s: float = 60.0) -> bool:
     return False
 
 
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, which a container without an init that reaps may keep, does not)."""
+    fields = _proc_stat(pid)
+    return fields is not None and fields[0] != "Z"
+
+
+def clear_stale_dvc_locks(root: Path) -> None:
+    """Drop from DVC's ``.dvc/tmp/rwlock`` the entries of processes that no longer run. A stopped run leaves them
+    when its ``dvc`` ends by a signal; DVC drops those of vanished pids itself, but not those of unreaped zombies,
+    and would refuse every later command. Entries of live processes are kept."""
+    path = root / ".dvc" / "tmp" / "rwlock"
+    try:
+        lock = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return
+    write = {p: info for p, info in lock.get("write", {}).items() if _alive(int(info["pid"]))}
+    read = {
+        p: kept for p, infos in lock.get("read", {}).items() if (kept := [i for i in infos if _alive(int(i["pid"]))])
+    }
+    cleared = {key: value for key, value in (("write", write), ("read", read)) if value}
+    if cleared != lock:
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(cleared))
+
+
 def _dvc_status(root: Path) -> str:
     """What ``dvc status`` says is left to run, in one line."""
+    clear_stale_dvc_locks(root)
     out = subprocess.run(["dvc", "status", "--json"], cwd=root, capture_output=True, text=True)
     if out.returncode != 0:
         return f"dvc status failed: {(out.stderr.strip().splitlines() or ['?'])[-1]}"
