@@ -143,7 +143,8 @@ def test_every_profile_applies_and_validates(profile: str, tmp_path: Path) -> No
         task = params.evolved
         assert task.name == f"maze2d-{maze}" and params.tasks == params.unseen_tasks == (task.name,)
         assert task.settings.env.maze == maze and task.settings.episode_steps == {"medium": 600, "large": 800}[maze]
-        assert task.diffusion.horizon == {"medium": 256, "large": 384}[maze] and params.seeds == (0, 1, 2)
+        assert task.diffusion.horizon == {"medium": 256, "large": 384}[maze] and params.seeds == (0, 1, 2, 3, 4)
+        assert task.evaluate.episodes == task.evaluate.held_out_episodes == 500  # a seed's episode noise kept small
         assert task.model.dim == 16 and task.planner.sampler_steps == 4  # the quick profile's model and planner
     if profile == "science-umaze":  # the quick profile on three seeds
         assert params.tasks == (UMAZE,) and params.evolve == UMAZE and params.seeds == (0, 1, 2)
@@ -465,6 +466,10 @@ REJECTED = [
     ({"sweep": {"trials": 0}}, "sweep.trials", "must be > 0"),
     ({"sweep": {"objective": "speed"}}, "sweep.objective", "must be one of 'gain', 'score', 'unseen', 'mix'"),
     ({"sweep": {"evaluate_seed": 1000}}, "sweep.evaluate_seed", "must not be tuned on the episodes"),
+    # each training seed plays evaluate.seed + seed: ranges that meet are refused, not only equal bases
+    ({"seeds": [0, 1, 2], "sweep": {"evaluate_seed": 998}}, "sweep.evaluate_seed", "plus a training seed"),
+    ({"sweep": {"evaluate_seed": 7000}}, "sweep.evaluate_seed", "evaluate.held_out_seed"),
+    (umaze(evaluate={"held_out_seed": 1000}), f"{T}.evaluate.held_out_seed", "held-out start states must be others"),
     ({"sweep": {"task": "maze2d-large"}}, "sweep.task", "must be one of tasks"),
     ({"seeds": []}, "seeds", "needs at least one training seed"),
     ({"seeds": [0, 1, 0]}, "seeds", "lists a seed twice"),

@@ -9,6 +9,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 import torch
 import yaml
@@ -17,6 +18,7 @@ from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
 from adaptdiffuser.derived_seeds import training_seed
 from adaptdiffuser.evaluation import standard_error
+from adaptdiffuser.intervals import interval
 from adaptdiffuser.layout import (
     SUMMARY,
     model_dir,
@@ -48,7 +50,7 @@ from adaptdiffuser.stages.report import (
     unseen_series,
     unseen_table,
 )
-from adaptdiffuser.stages.summarize import run_summarize, unseen_gain
+from adaptdiffuser.stages.summarize import build_summary, run_summarize, unseen_gain
 
 REPO = Path(__file__).resolve().parents[1]
 CPU = torch.device("cpu")
@@ -125,6 +127,60 @@ def test_metrics_are_aggregated_over_seeds(two_seeds: tuple[Path, Params]) -> No
     gains = [control["seeds"][s]["gain_mean"] for s in ("0", "3")]
     assert control["gain_mean"] == pytest.approx(np.mean(gains))
     assert control["gain_stderr"] == pytest.approx(standard_error(gains))
+
+
+def _table(root: Path, phase: int, seed: int, name: str, control: bool = False) -> dict:
+    return pq.read_table(root / results_dir(TASK, phase, seed, control) / name).to_pydict()
+
+
+def test_each_training_seed_plays_start_states_of_its_own_and_held_out_ones(two_seeds: tuple[Path, Params]) -> None:
+    root, params = two_seeds
+    ev = params.resolve(TASK).evaluate
+    starts = {}
+    for seed in (0, 3):
+        main, held_out = _table(root, 0, seed, "episodes.parquet"), _table(root, 0, seed, "held_out.parquet")
+        starts[seed] = list(zip(main["start_x"], main["start_y"], strict=True))
+        assert len(main["score"]) == ev.episodes and len(held_out["score"]) == ev.held_out_episodes
+        assert not set(zip(held_out["start_x"], held_out["start_y"], strict=True)) & set(starts[seed])
+        # a phase and its control play the same start states, on both sets
+        for name in ("episodes.parquet", "held_out.parquet"):
+            phase1, control = _table(root, 1, seed, name), _table(root, 1, seed, name, control=True)
+            assert (phase1["start_x"], phase1["goal_x"]) == (control["start_x"], control["goal_x"])
+    assert starts[0] != starts[3]
+
+
+def test_scores_and_gains_carry_their_interval_over_seeds_and_episodes(two_seeds: tuple[Path, Params]) -> None:
+    root, params = two_seeds
+    phase1 = json.loads((root / phase_metrics_path(TASK, 1)).read_text())
+    control = json.loads((root / phase_metrics_path(TASK, 1, control=True)).read_text())
+    for seed in ("0", "3"):  # each seed keeps its episodes; the gain is paired episode by episode
+        ours, theirs = phase1["seeds"][seed], control["seeds"][seed]
+        for where, name in ((ours, "episodes.parquet"), (ours["held_out"], "held_out.parquet")):
+            assert where["score_per_episode"] == pytest.approx(_table(root, 1, int(seed), name)["score"])
+        gains = np.subtract(ours["score_per_episode"], theirs["score_per_episode"])
+        assert theirs["gain_per_episode"] == pytest.approx(gains)
+        assert theirs["held_out"]["gain_per_episode"] == pytest.approx(
+            np.subtract(ours["held_out"]["score_per_episode"], theirs["held_out"]["score_per_episode"])
+        )
+    expected = interval([control["seeds"][s]["gain_per_episode"] for s in ("0", "3")])
+    assert (control["gain_ci_low"], control["gain_ci_high"]) == (expected["ci_low"], expected["ci_high"])
+    assert control["gain_ci_low"] <= control["gain_mean"] <= control["gain_ci_high"]
+    assert "gain_per_episode" not in control and "score_per_episode" not in phase1["held_out"]
+    assert phase1["score_ci_low"] <= phase1["score_mean"] <= phase1["score_ci_high"]
+    assert 0.0 <= control["probability_of_improvement"] <= 1.0
+    summary = build_summary(params, root)[TASK]["phase_1"]
+    assert summary["gain_ci_high"] == control["gain_ci_high"] and "gain_ci_high" not in summary["control"]
+    assert summary["held_out"]["gain_mean"] == control["held_out"]["gain_mean"]
+    assert "gain_mean" not in summary["control"]["held_out"] and "probability_of_improvement" not in summary["control"]
+    row = next(line for line in gains_table({TASK: build_summary(params, root)[TASK]}) if "| 1 |" in line)
+    assert f"[{control['gain_ci_low']:.1f}, {control['gain_ci_high']:.1f}]" in row
+    assert f"| {control['probability_of_improvement']:.2f} |" in row
+
+
+def test_a_seeds_episodes_become_an_interval_in_the_aggregate_even_alone() -> None:
+    merged = over_seeds({0: {"score_mean": 2.0, "score_stderr": 0.5, "score_per_episode": [1.0, 2.0, 3.0]}})
+    assert "score_per_episode" not in merged and merged["seeds"]["0"]["score_per_episode"] == [1.0, 2.0, 3.0]
+    assert 1.0 <= merged["score_ci_low"] < 2.0 < merged["score_ci_high"] <= 3.0
 
 
 def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params], tmp_path: Path) -> None:
@@ -229,8 +285,8 @@ def test_merged_summaries_keep_every_run_and_recipe_of_a_task() -> None:
         "hopper (hopper)": hopper["hopper"],
     }
     rows = gains_table(merged)[2:]
-    assert "| maze (plans) | 1 | 80.9 ± 0.1 | 81.1 ± 0.1 | -0.2 ± 0.1 | 3 x 50 |" in rows[1]
-    assert "| maze (rollouts) | 1 | 81.5 ± 0.1 | 81.1 ± 0.1 | 0.4 ± 0.1 | 3 x 50 |" in rows[3]
+    assert "| maze (plans) | 1 | 80.9 ± 0.1 | 81.1 ± 0.1 | -0.2 ± 0.1 |  |  | 3 x 50 |" in rows[1]
+    assert "| maze (rollouts) | 1 | 81.5 ± 0.1 | 81.1 ± 0.1 | 0.4 ± 0.1 |  |  | 3 x 50 |" in rows[3]
     # the evolved entry wins over a phase-0-only one of the same phase 0, whichever file comes first
     same_start = {"hopper": {"phase_0": phase(33.1)}}
     for order in ([("a", same_start), ("b", hopper)], [("b", hopper), ("a", same_start)]):

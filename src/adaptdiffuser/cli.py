@@ -449,10 +449,12 @@ def gains(
         list[Path] | None, typer.Argument(help="metrics/summary.json files (default: metrics/summary.json)")
     ] = None,
 ) -> None:
-    """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error) as a
-    Markdown table; then the same on D4RL's constants where the task gives them (Maze2D), and the score on the
-    unseen task (gold coin, pick-and-place), phase against control. A task whose entries in several files differ
-    beyond phase 0 (two recipes, two runs) is listed once per file, as ``<task> (<file name>)``."""
+    """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error, and the 95 %
+    interval of a bootstrap over training seeds and episodes), the probability of improvement and the gain on the
+    held-out start states as a Markdown table; then the same on D4RL's constants where the task gives them
+    (Maze2D), and the score on the unseen task (gold coin, pick-and-place), phase against control. A task whose
+    entries in several files differ beyond phase 0 (two recipes, two runs) is listed once per file, as
+    ``<task> (<file name>)``."""
     from adaptdiffuser.io import read_json
     from adaptdiffuser.stages.report import d4rl_table, gains_table, merge_summaries, unseen_table
 

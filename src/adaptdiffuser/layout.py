@@ -131,3 +131,7 @@ def report_plot_path(task: str) -> Path:
 
 def unseen_plot_path(task: str) -> Path:
     return Path(f"plots/report/{task}/unseen_by_phase.png")
+
+
+#: the metrics (and the results table, ``held_out.parquet``) of the held-out start states (``evaluate.held_out_seed``)
+HELD_OUT = "held_out"

@@ -5,7 +5,12 @@ Episodes are averaged within a seed first; the aggregate of every number is its 
 ``<name>_stderr`` beside a ``<name>_mean`` (or a ``<name>``) becomes the standard error of that mean over seeds
 when there are two or more. A number a seed could not measure (None: a mean over no episode) is left out of its
 mean; None where no seed measured it. With one seed the aggregate is that seed's metrics unchanged (the standard
-errors are then over episodes: ``stderr_over`` says which)."""
+errors are then over episodes: ``stderr_over`` says which).
+
+A seed's ``<name>_per_episode`` (the list of its episodes' values: scores, or paired gains over a control) stays in
+that seed's entry only; the aggregate holds in its place the 95 % confidence interval of ``<name>_mean`` as
+``<name>_ci_low`` and ``<name>_ci_high``: the two-level bootstrap of :mod:`adaptdiffuser.intervals` over the seeds
+and their episodes (over episodes alone with one seed)."""
 
 from __future__ import annotations
 
@@ -15,6 +20,9 @@ from typing import Any
 import numpy as np
 
 from adaptdiffuser.evaluation import standard_error
+from adaptdiffuser.intervals import interval
+
+PER_EPISODE = "_per_episode"
 
 
 def _is_number(value: Any) -> bool:
@@ -59,13 +67,28 @@ def _spread_over_seeds(merged: dict[str, Any], values: list[Mapping[str, Any]]) 
                 merged[key] = standard_error(measured) if len(measured) > 1 else None
 
 
+def _intervals_in_place(merged: dict[str, Any], values: list[Mapping[str, Any]]) -> None:
+    """Replace, in place and at every depth, each ``<name>_per_episode`` that every seed holds by the interval of
+    its mean over seeds and episodes (``<name>_ci_low``, ``<name>_ci_high``)."""
+    for key in list(merged):
+        if isinstance(merged[key], dict):
+            _intervals_in_place(merged[key], [v[key] for v in values])
+    for key in [k for k in values[0] if k.endswith(PER_EPISODE)]:
+        merged.pop(key, None)
+        if all(isinstance(v.get(key), list) and v[key] for v in values):
+            name = key.removesuffix(PER_EPISODE)
+            bounds = interval([v[key] for v in values])
+            merged[f"{name}_ci_low"], merged[f"{name}_ci_high"] = bounds["ci_low"], bounds["ci_high"]
+
+
 def _has_stderr(metrics: Mapping[str, Any]) -> bool:
     return any(k.endswith("_stderr") or (isinstance(v, Mapping) and _has_stderr(v)) for k, v in metrics.items())
 
 
 def over_seeds(per_seed: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
     """One metrics dict for several training seeds: every number averaged over seeds, standard errors taken over
-    seeds (with two or more), ``n_seeds`` and each seed's metrics under ``seeds``."""
+    seeds (with two or more), each per-episode list replaced by its confidence interval, ``n_seeds`` and each seed's
+    metrics under ``seeds``."""
     if not per_seed:
         raise ValueError("no training seed's metrics to aggregate")
     seeds = list(per_seed)
@@ -73,6 +96,7 @@ def over_seeds(per_seed: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
     merged: dict[str, Any] = _mean_of(values)
     if len(seeds) > 1:
         _spread_over_seeds(merged, values)
+    _intervals_in_place(merged, values)
     if _has_stderr(merged):
         merged["stderr_over"] = "seeds" if len(seeds) > 1 else "episodes"
     merged["n_seeds"] = len(seeds)

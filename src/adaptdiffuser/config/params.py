@@ -4,6 +4,7 @@ phase chain and the checks that span sections."""
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from dataclasses import field
 from typing import Annotated, Any
 
@@ -158,6 +159,12 @@ class Params:
         return chain[::-1]
 
 
+def start_seeds(base: int, seeds: Sequence[int]) -> set[int]:
+    """The evaluation seeds of a set of start states (``evaluate.seed``, ...) over the training seeds: seed s plays
+    ``base + s``."""
+    return {base + seed for seed in seeds}
+
+
 def check_sweep(p: Params) -> None:
     """The swept task runs evolution phases, an unseen objective needs a task of ``unseen_tasks``, and trials never
     evaluate on the pipeline's evaluation episodes."""
@@ -174,10 +181,13 @@ def check_sweep(p: Params) -> None:
             f"sweep.objective: {s.objective!r} needs a task with an unseen task and {task} is not in unseen_tasks; "
             "use gain or score"
         )
-    if s.space and s.evaluate_seed == p.task[task].evaluate.seed:
+    ev = p.task[task].evaluate
+    reported = start_seeds(ev.seed, p.seeds) | start_seeds(ev.held_out_seed, p.seeds)
+    if s.space and start_seeds(s.evaluate_seed, p.seeds) & reported:
         raise ConfigError(
-            f"sweep.evaluate_seed: {s.evaluate_seed} is the evaluation seed of {task} (evaluate.seed); trials "
-            "must not be tuned on the episodes the results are reported on"
+            f"sweep.evaluate_seed: {s.evaluate_seed} plus a training seed is an evaluation seed of {task} "
+            "(evaluate.seed, evaluate.held_out_seed, each plus a training seed); trials must not be tuned on the "
+            "episodes the results are reported on"
         )
 
 
@@ -227,6 +237,12 @@ def check_task(task: TaskParams, params: Params) -> None:
         raise ConfigError(
             f"{where}.planner.sampler_steps: {task.planner.sampler_steps} exceeds diffusion.n_steps="
             f"{task.diffusion.n_steps}"
+        )
+    ev = task.evaluate
+    if ev.held_out_episodes and start_seeds(ev.seed, params.seeds) & start_seeds(ev.held_out_seed, params.seeds):
+        raise ConfigError(
+            f"{where}.evaluate.held_out_seed: {ev.held_out_seed} plus a training seed is also evaluate.seed "
+            f"({ev.seed}) plus one; the held-out start states must be others"
         )
     check = getattr(task.settings, "check", None)
     if check is not None:

@@ -101,7 +101,13 @@ class PlannerParams:
 @dataclass(frozen=True, config=SECTION)
 class EvaluateParams:
     episodes: PositiveInt = 50
+    #: training seed s plays the start states of seed + s: each seed its own episodes, shared by its phases and
+    #: controls (paired)
     seed: Seed = 1000
+    #: the held-out start states (held_out_seed + s), reported beside the main ones and never used to choose
+    #: anything (sweeps evaluate on sweep.evaluate_seed); 0 held-out episodes: none
+    held_out_seed: Seed = 7000
+    held_out_episodes: NonNegativeInt = 50
     #: episodes planned together in one batch
     batch_size: PositiveInt = 50
     pictures: NonNegativeInt = 4

@@ -9,18 +9,28 @@ from pathlib import Path
 import numpy as np
 
 from adaptdiffuser.io import atomic_path, read_json
-from adaptdiffuser.layout import SUMMARY, report_plot_path, score_table_path, unseen_plot_path
+from adaptdiffuser.layout import HELD_OUT, SUMMARY, report_plot_path, score_table_path, unseen_plot_path
 from adaptdiffuser.plots import save_panels_by_phase, save_score_by_phase
 from adaptdiffuser.stages.common import phase_entries, unseen_scores
+from adaptdiffuser.stages.summarize import GAIN_KEYS
 
 TABLE_COLUMNS = (
     "phase",
     "score_mean",
     "score_stderr",
+    "score_ci_low",
+    "score_ci_high",
     "control_score_mean",
     "control_score_stderr",
     "gain_mean",
     "gain_stderr",
+    "gain_ci_low",
+    "gain_ci_high",
+    "probability_of_improvement",
+    "held_out_score_mean",
+    "held_out_gain_mean",
+    "held_out_gain_ci_low",
+    "held_out_gain_ci_high",
     "return_mean",
     "n_episodes",
     "n_seeds",
@@ -33,15 +43,18 @@ def score_table(task_summary: dict) -> list[dict]:
     control: its control and gain cells are empty)."""
     rows = []
     for phase, entry in phase_entries(task_summary):
+        control, held_out = entry.get("control", {}), entry.get(HELD_OUT, {})
         rows.append(
             {
                 "phase": phase,
                 **{k: entry[k] for k in ("score_mean", "score_stderr", "return_mean", "n_episodes")},
+                **{k: entry.get(k) for k in ("score_ci_low", "score_ci_high")},
                 "n_seeds": entry.get("n_seeds", 1),
-                "control_score_mean": entry.get("control", {}).get("score_mean"),
-                "control_score_stderr": entry.get("control", {}).get("score_stderr"),
-                "gain_mean": entry.get("gain_mean"),
-                "gain_stderr": entry.get("gain_stderr"),
+                "control_score_mean": control.get("score_mean"),
+                "control_score_stderr": control.get("score_stderr"),
+                **{k: entry.get(k) for k in GAIN_KEYS},
+                "held_out_score_mean": held_out.get("score_mean"),
+                **{f"held_out_{k}": held_out.get(k) for k in ("gain_mean", "gain_ci_low", "gain_ci_high")},
                 "kept": entry.get("discriminator", {}).get("kept", 0),
             }
         )
@@ -77,6 +90,14 @@ def _pm(mean: float | None, stderr: float | None) -> str:
     return "" if mean is None else f"{mean:.1f} ± {stderr or 0.0:.1f}"
 
 
+def _with_interval(row: dict, name: str) -> str:
+    """``mean ± stderr [low, high]`` of ``<name>_*`` in ``row``: the 95 % interval beside the standard error, where
+    the row holds one."""
+    text = _pm(row[f"{name}_mean"], row[f"{name}_stderr"])
+    low, high = row.get(f"{name}_ci_low"), row.get(f"{name}_ci_high")
+    return text if low is None or high is None or not text else f"{text} [{low:.1f}, {high:.1f}]"
+
+
 def _only_phase_0_of(entry: dict, other: dict) -> bool:
     """Whether a task's summary entry holds no phase beyond 0 and its phase 0 is ``other``'s."""
     phases = {key for key in entry if key.startswith("phase_")}
@@ -107,18 +128,28 @@ def merge_summaries(summaries: list[tuple[str, dict]]) -> dict:
 
 def gains_table(summary: dict) -> list[str]:
     """A Markdown table of every task's phases in ``metrics/summary.json``: score, control score and the gain over
-    the control, each mean ± standard error (over training seeds, or over episodes with one seed)."""
+    the control, each mean ± standard error (over training seeds, or over episodes with one seed) and its 95 %
+    interval (a bootstrap over seeds and episodes) where the summary holds one; the probability that the phase
+    beats its control on a start state; the gain on the held-out start states."""
     lines = [
-        "| task | phase | score | control (expert only, same steps) | gain over control | seeds x episodes | kept |",
-        "|---|---|---|---|---|---|---|",
+        "| task | phase | score [95% CI] | control (expert only, same steps) | gain over control [95% CI] "
+        "| P(improvement) | held-out gain [95% CI] | seeds x episodes | kept |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for task, task_summary in summary.items():
         for row in score_table(task_summary):
+            improvement = row["probability_of_improvement"]
+            held_out = row["held_out_gain_mean"]
+            held_out_gain = "" if held_out is None else f"{held_out:.1f}"
+            if held_out is not None and row["held_out_gain_ci_low"] is not None:
+                held_out_gain += f" [{row['held_out_gain_ci_low']:.1f}, {row['held_out_gain_ci_high']:.1f}]"
             lines.append(
-                f"| {task} | {row['phase']} | {_pm(row['score_mean'], row['score_stderr'])} "
+                f"| {task} | {row['phase']} "
+                f"| {_with_interval(row, 'score')} "
                 f"| {_pm(row['control_score_mean'], row['control_score_stderr'])} "
-                f"| {_pm(row['gain_mean'], row['gain_stderr'])} | {row['n_seeds']} x {row['n_episodes']} "
-                f"| {row['kept']:g} |"
+                f"| {_with_interval(row, 'gain')} "
+                f"| {'' if improvement is None else f'{improvement:.2f}'} | {held_out_gain} "
+                f"| {row['n_seeds']} x {row['n_episodes']} | {row['kept']:g} |"
             )
     return lines
 

@@ -12,6 +12,7 @@ from adaptdiffuser.config.params import unseen_task_of
 from adaptdiffuser.evaluation import standard_error
 from adaptdiffuser.io import read_json, write_json
 from adaptdiffuser.layout import (
+    HELD_OUT,
     SUMMARY,
     discriminator_metrics_path,
     phase_metrics_path,
@@ -22,7 +23,8 @@ from adaptdiffuser.stages.common import phase_entries, unseen_scores
 from adaptdiffuser.tooling.mlflow_logging import set_best_alias, stage_run
 
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept")
-GAIN_KEYS = ("gain_mean", "gain_stderr")
+#: a phase's gain over its control: mean ± standard error, 95 % interval, probability of improvement
+GAIN_KEYS = ("gain_mean", "gain_stderr", "gain_ci_low", "gain_ci_high", "probability_of_improvement")
 PER_SEED_KEYS = ("score_mean", "score_stderr", "gain_mean", "gain_stderr")
 #: what 0 and 100 of the score mean, and other constants to read it on where the reference gives them (D4RL's)
 REFERENCE_KEYS = ("r_min", "r_max", "d4rl_r_min", "d4rl_r_max")
@@ -40,7 +42,7 @@ def _per_seed(metrics: dict, control: dict | None) -> dict[str, dict]:
         row = {k: m[k] for k in PER_SEED_KEYS if k in m}
         if control is not None:
             c = control["seeds"][seed]
-            row |= {"control_score_mean": c["score_mean"], **{k: c[k] for k in GAIN_KEYS}}
+            row |= {"control_score_mean": c["score_mean"], **{k: c[k] for k in GAIN_KEYS if k in c}}
         out[seed] = row
     return out
 
@@ -73,6 +75,16 @@ def unseen_gain(phase: dict, control: dict, unseen: str) -> dict[str, dict]:
     return gains
 
 
+def _gain_moved(phase: dict, control: dict) -> dict:
+    """The control's metrics without its gain keys, which go to ``phase`` (the gain is the phase's), on the main
+    start states and on the held-out ones alike."""
+    phase.update({key: control[key] for key in GAIN_KEYS if key in control})
+    rest = {key: value for key, value in control.items() if key not in GAIN_KEYS and not key.startswith("gain_")}
+    if isinstance(control.get(HELD_OUT), dict) and isinstance(phase.get(HELD_OUT), dict):
+        rest[HELD_OUT] = _gain_moved(phase[HELD_OUT], control[HELD_OUT])
+    return rest
+
+
 def task_phases(params: Params, task: str) -> list[int]:
     """The phases a task is evaluated at: 0, and 1..K for the evolved task."""
     return [0, *(phase.index for phase in params.phases)] if task == params.evolve else [0]
@@ -98,7 +110,8 @@ def build_summary(params: Params, root: Path) -> dict:
     discriminator counts, the equal-compute control's metrics and the gain of the phase over it; and the dataset's
     own score where the reference stage measured it.
 
-    Means and standard errors are over training seeds (over episodes with one seed: ``stderr_over``); the
+    Means and standard errors are over training seeds (over episodes with one seed: ``stderr_over``), 95 % intervals
+    (``*_ci_low``, ``*_ci_high``) over seeds and their episodes; the held-out start states' under ``held_out``; the
     discriminator counts are means over seeds; ``per_seed`` has each seed's score and gain."""
     summary: dict[str, dict] = {}
     for task in params.tasks:
@@ -124,10 +137,7 @@ def build_summary(params: Params, root: Path) -> dict:
                 control = read_json(
                     root / phase_metrics_path(task, k, control=True), f"metrics of {task} phase {k}'s control"
                 )
-                phase.update({key: control[key] for key in GAIN_KEYS})
-                phase["control"] = {
-                    key: value for key, value in _without_seeds(control).items() if not key.startswith("gain_")
-                }
+                phase["control"] = _gain_moved(phase, _without_seeds(control))
                 if unseen is not None:
                     unseen_control = _unseen_file(root, task, k, unseen, control=True)
                     phase["control"][unseen] = unseen_control[unseen]
