@@ -11,7 +11,6 @@ Rerun after a change that is meant to change a resolved value: ``python tests/re
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import sys
@@ -19,28 +18,12 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel
-
-from adaptdiffuser.config import Params, TaskParams, apply_profile, load_params
+from adaptdiffuser.config import Params, apply_profile, load_params
+from adaptdiffuser.config.defaults import plain
 
 REPO = Path(__file__).resolve().parents[1]
 PROFILES = REPO / "profiles"
 FIXTURE = REPO / "tests" / "data" / "resolved_profiles.json"
-
-
-def plain(value: Any) -> Any:
-    """``value`` as plain JSON data: dataclasses and pydantic models as mappings of their fields (a task's entry as
-    written is left out: only what it resolves to counts)."""
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        skip = {"entry"} if isinstance(value, TaskParams) else set()
-        return {f.name: plain(getattr(value, f.name)) for f in dataclasses.fields(value) if f.name not in skip}
-    if isinstance(value, BaseModel):
-        return {name: plain(getattr(value, name)) for name in type(value).model_fields}
-    if isinstance(value, dict):
-        return {str(key): plain(item) for key, item in value.items()}
-    if isinstance(value, list | tuple):
-        return [plain(item) for item in value]
-    return value
 
 
 def flatten(tree: Any, prefix: str = "") -> dict[str, str]:
@@ -54,8 +37,12 @@ def flatten(tree: Any, prefix: str = "") -> dict[str, str]:
 
 
 def resolved(params: Params) -> dict[str, str]:
-    """Every resolved value of ``params``, flattened (:func:`flatten`)."""
-    return flatten(plain(params))
+    """Every resolved value of ``params``, flattened (:func:`flatten`); a task's entry as written is left out: only
+    what it resolves to counts."""
+    tree = plain(params)
+    for task in tree["task"].values():
+        task.pop("entry")
+    return flatten(tree)
 
 
 def digest(values: dict[str, str]) -> str:

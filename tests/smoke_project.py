@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -59,3 +61,22 @@ def run_tool(cmd: list[str], cwd: Path, **env: str) -> str:
     out = subprocess.run(cmd, cwd=cwd, env=tool_env() | env, capture_output=True, text=True)
     assert out.returncode == 0, f"{' '.join(cmd)} failed:\n{out.stdout}\n{out.stderr}"
     return out.stdout + out.stderr
+
+
+def run_queue(root: Path, workers: int = 2, timeout_s: float = 1500.0) -> str:
+    """Run the DVC experiments queued in ``root`` on ``workers`` workers (one torch thread each) until none is
+    queued or running; return the last ``dvc queue status`` table. Each poll is a `dvc` process (about a CPU-second)
+    taken from the experiments on the same cores, so the wait between polls grows from 5 s to 30 s."""
+    run_tool(["dvc", "queue", "start", "-j", str(workers)], root, OMP_NUM_THREADS="1")
+    try:
+        deadline = time.monotonic() + timeout_s
+        wait = 5.0
+        while True:
+            status = run_tool(["dvc", "queue", "status"], root)
+            if not re.search(r"\b(Queued|Running)\b", status):
+                return status
+            assert time.monotonic() < deadline, f"the queue did not finish in {timeout_s:.0f} s:\n{status}"
+            time.sleep(wait)
+            wait = min(1.5 * wait, 30.0)
+    finally:
+        run_tool(["dvc", "queue", "stop"], root)

@@ -5,16 +5,14 @@ seeds do not pool."""
 from __future__ import annotations
 
 import json
-import re
 import shutil
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 import yaml
-from smoke_project import REPO, make_smoke_project, run_tool
+from smoke_project import REPO, make_smoke_project, run_queue, run_tool
 
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.seed_metrics import over_seeds
@@ -195,17 +193,6 @@ def test_a_seed_in_two_runs_files_is_refused(tasks: Path, tmp_path: Path) -> Non
         pool_runs(runs, tmp_path / "pooled")
 
 
-def _wait_for_queue(root: Path, timeout_s: float = 900.0) -> str:
-    """Poll ``dvc queue status`` until no experiment is queued or running; return the last status table."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        status = run_tool(["dvc", "queue", "status"], root)
-        if not re.search(r"\b(Queued|Running)\b", status):
-            return status
-        assert time.monotonic() < deadline, f"the queue did not finish in {timeout_s:.0f} s:\n{status}"
-        time.sleep(10)
-
-
 @pytest.mark.e2e
 def test_seeds_queued_as_dvc_experiments_run_on_two_workers_and_pool(tmp_path: Path) -> None:
     def phase0_of_the_maze(path: Path) -> None:
@@ -217,11 +204,7 @@ def test_seeds_queued_as_dvc_experiments_run_on_two_workers_and_pool(tmp_path: P
     project = make_smoke_project(tmp_path / "project", run_tool, edit=phase0_of_the_maze)
     out = run_tool(["adaptdiffuser", "seeds", "queue", "0", "1", "--name", "tiny"], project)
     assert "queued tiny-seed0 tiny-seed1" in out and "--exp tiny-seed0 --exp tiny-seed1" in out
-    run_tool(["dvc", "queue", "start", "-j", "2"], project, OMP_NUM_THREADS="1")
-    try:
-        status = _wait_for_queue(project)
-    finally:
-        run_tool(["dvc", "queue", "stop"], project)
+    status = run_queue(project, timeout_s=900.0)
     assert status.count("Success") == 2, status
 
     into = tmp_path / "pooled"

@@ -7,12 +7,11 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import time
 from pathlib import Path
 
 import pytest
 from mlflow.tracking import MlflowClient
-from smoke_project import run_tool
+from smoke_project import run_queue, run_tool
 
 MAZE = "maze2d-umaze"
 PHASE0_STAGES = ("collect", "reference", "pretrain", "evaluate-phase0")
@@ -52,21 +51,6 @@ def test_a_run_pushed_to_a_shared_remote_is_pulled_into_a_fresh_clone_without_re
             assert (clone / model / path.relative_to(origin / model)).read_bytes() == path.read_bytes()
 
 
-def _wait_for_queue(root: Path, timeout_s: float = 1500.0) -> str:
-    """Poll ``dvc queue status`` until no experiment is queued or running; return the last status table. Each poll
-    is a `dvc` process (about a CPU-second) taken from the experiments on the same cores, so the wait between polls
-    grows from 5 s to 30 s."""
-    deadline = time.monotonic() + timeout_s
-    wait = 5.0
-    while True:
-        status = run_tool(["dvc", "queue", "status"], root)
-        if not re.search(r"\b(Queued|Running)\b", status):
-            return status
-        assert time.monotonic() < deadline, f"the queue did not finish in {timeout_s:.0f} s:\n{status}"
-        time.sleep(wait)
-        wait = min(1.5 * wait, 30.0)
-
-
 @pytest.mark.e2e
 def test_the_queue_runs_two_experiments_at_once_one_of_them_the_sweeps_best_trial(
     smoke_repo: Path, tmp_path: Path
@@ -80,11 +64,7 @@ def test_the_queue_runs_two_experiments_at_once_one_of_them_the_sweeps_best_tria
     assert best == "adaptdiffuser-best-trial0"
     run_tool(["dvc", "exp", "run", "--queue", "-n", "alpha30", "-S", "alpha=30"], repo)
 
-    run_tool(["dvc", "queue", "start", "-j", "2"], repo, OMP_NUM_THREADS="1")
-    try:
-        status = _wait_for_queue(repo)
-    finally:
-        run_tool(["dvc", "queue", "stop"], repo)
+    status = run_queue(repo)
     assert status.count("Success") == 2, status
 
     # `dvc exp show` compares both with the baseline: their params and the summary's scores

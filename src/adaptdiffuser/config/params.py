@@ -191,18 +191,24 @@ def check_sweep(p: Params) -> None:
         )
 
 
-def check_cross_fields(p: Params) -> None:
-    """The checks that span sections; :class:`ConfigError` naming the key."""
+def check_shapes(p: Params | TaskParams, prefix: str) -> None:
+    """The U-Net's horizon divides evenly through its downsamplings, and the planner's sampler steps fit the
+    diffusion chain (``prefix``: where the keys are, ``""`` or ``"task.<name>."``)."""
     factor = 2 ** (len(p.model.dim_mults) - 1)
     if p.diffusion.horizon % factor:
         raise ConfigError(
-            f"diffusion.horizon: must be divisible by {factor} (the U-Net halves it {len(p.model.dim_mults) - 1} "
-            f"times; see model.dim_mults), got {p.diffusion.horizon}"
+            f"{prefix}diffusion.horizon: must be divisible by {factor} (the U-Net halves it "
+            f"{len(p.model.dim_mults) - 1} times; see model.dim_mults), got {p.diffusion.horizon}"
         )
     if p.planner.sampler_steps > p.diffusion.n_steps:
         raise ConfigError(
-            f"planner.sampler_steps: {p.planner.sampler_steps} exceeds diffusion.n_steps={p.diffusion.n_steps}"
+            f"{prefix}planner.sampler_steps: {p.planner.sampler_steps} exceeds diffusion.n_steps={p.diffusion.n_steps}"
         )
+
+
+def check_cross_fields(p: Params) -> None:
+    """The checks that span sections; :class:`ConfigError` naming the key."""
+    check_shapes(p, "")
     check_task_lists(p)
     check_chain(p.phases)
     check_sweep(p)
@@ -227,17 +233,7 @@ def check_cross_fields(p: Params) -> None:
 def check_task(task: TaskParams, params: Params) -> None:
     """The checks that span a task's sections: the U-Net's horizon, sampler steps, and the family's own."""
     where = f"task.{task.name}"
-    factor = 2 ** (len(task.model.dim_mults) - 1)
-    if task.diffusion.horizon % factor:
-        raise ConfigError(
-            f"{where}.diffusion.horizon: must be divisible by {factor} (the U-Net halves it "
-            f"{len(task.model.dim_mults) - 1} times; see model.dim_mults), got {task.diffusion.horizon}"
-        )
-    if task.planner.sampler_steps > task.diffusion.n_steps:
-        raise ConfigError(
-            f"{where}.planner.sampler_steps: {task.planner.sampler_steps} exceeds diffusion.n_steps="
-            f"{task.diffusion.n_steps}"
-        )
+    check_shapes(task, f"{where}.")
     ev = task.evaluate
     if ev.held_out_episodes and start_seeds(ev.seed, params.seeds) & start_seeds(ev.held_out_seed, params.seeds):
         raise ConfigError(
