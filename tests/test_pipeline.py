@@ -84,7 +84,7 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
         assert len(selected.episodes()) == disc["kept"]
         assert (smoke_repo / f"plots/{MAZE}/discriminator/phase{k}/seed0.png").read_bytes()[:4] == b"\x89PNG"
     table = (smoke_repo / f"metrics/report/{MAZE}/score_by_phase.csv").read_text().splitlines()
-    assert table[0].startswith("phase,score_mean,score_stderr,control_score_mean,control_score_stderr,gain_mean")
+    assert table[0].startswith("phase,score_mean,score_stderr,score_ci_low,score_ci_high,control_score_mean")
     assert [r.split(",")[0] for r in table[1:]] == ["0", "1", "2"]
     assert (smoke_repo / f"plots/report/{MAZE}/score_by_phase.png").read_bytes()[:4] == b"\x89PNG"
     assert f"{MAZE}/score_by_phase.csv" in _run(["dvc", "plots", "show", "--json"], smoke_repo)

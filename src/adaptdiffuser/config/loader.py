@@ -63,15 +63,16 @@ def read_yaml_mapping(path: Path, not_a_mapping: str) -> dict:
     return raw
 
 
-def load_params(path: str | Path = "params.yaml") -> Params:
+def load_params(path: str | Path = "params.yaml", set_by_caller: tuple[str, ...] = ()) -> Params:
     """Load and validate ``params.yaml``; raise :class:`ConfigError` naming the first bad key, or the keys of the
-    generic sections it leaves out (:func:`missing_keys`)."""
+    generic sections it leaves out (:func:`missing_keys`) other than those under a prefix in ``set_by_caller``
+    (which take their defaults: the caller overrides them, as kept-model evaluation does ``evaluate.``)."""
     path = Path(path)
     if not path.exists():
         raise ConfigError(f"params file not found: {path}")
     raw = read_yaml_mapping(path, "top level must be a mapping of sections")
     params = params_from_dict(raw)  # a bad value is named first
-    missing = missing_keys(raw)
+    missing = [key for key in missing_keys(raw) if not key.startswith(set_by_caller)]
     if missing:
         shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
         raise ConfigError(

@@ -7,6 +7,9 @@ from pathlib import Path
 
 import torch
 
+#: a phase's gain over its control: mean ± standard error, 95 % interval, probability of improvement
+GAIN_KEYS = ("gain_mean", "gain_stderr", "gain_ci_low", "gain_ci_high", "probability_of_improvement")
+
 
 def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str, phase: int, root: Path) -> dict:
     """A stage's metrics of every training seed as one file (``root / path``; see

@@ -137,7 +137,8 @@ def _play(
 ) -> tuple[dict[str, float | int], np.ndarray]:
     """One kept model's metrics and per-episode scores on the given episodes."""
     run = root / entry.run
-    params = load_params(run / "params.yaml")
+    # the run's record may predate evaluation keys added since; this evaluation sets its own episodes and seed
+    params = load_params(run / "params.yaml", set_by_caller=("evaluate.",))
     task = params.resolve(entry.task)
     task = dataclasses.replace(
         task, evaluate=dataclasses.replace(task.evaluate, episodes=episodes, seed=eval_seed, pictures=0)

@@ -11,8 +11,7 @@ import numpy as np
 from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.layout import HELD_OUT, SUMMARY, report_plot_path, score_table_path, unseen_plot_path
 from adaptdiffuser.plots import save_panels_by_phase, save_score_by_phase
-from adaptdiffuser.stages.common import phase_entries, unseen_scores
-from adaptdiffuser.stages.summarize import GAIN_KEYS
+from adaptdiffuser.stages.common import GAIN_KEYS, phase_entries, unseen_scores
 
 TABLE_COLUMNS = (
     "phase",

@@ -19,12 +19,10 @@ from adaptdiffuser.layout import (
     reference_path,
     unseen_metrics_path,
 )
-from adaptdiffuser.stages.common import phase_entries, unseen_scores
+from adaptdiffuser.stages.common import GAIN_KEYS, phase_entries, unseen_scores
 from adaptdiffuser.tooling.mlflow_logging import set_best_alias, stage_run
 
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept")
-#: a phase's gain over its control: mean ± standard error, 95 % interval, probability of improvement
-GAIN_KEYS = ("gain_mean", "gain_stderr", "gain_ci_low", "gain_ci_high", "probability_of_improvement")
 PER_SEED_KEYS = ("score_mean", "score_stderr", "gain_mean", "gain_stderr")
 #: what 0 and 100 of the score mean, and other constants to read it on where the reference gives them (D4RL's)
 REFERENCE_KEYS = ("r_min", "r_max", "d4rl_r_min", "d4rl_r_max")
