@@ -37,3 +37,13 @@ def test_params_yaml_is_the_quick_profile_resolved() -> None:
     now = resolved(load_params(REPO / "params.yaml"))
     assert changed(now, PINNED["params.yaml"]) == []
     assert now == resolve_profile("quick")
+
+
+@pytest.mark.parametrize("name", [n for n in NAMES if n == "smoke" or n.startswith("quick")])
+def test_quick_profiles_spend_no_more_on_held_out_states_than_on_their_own(name: str) -> None:
+    """In the quick and smoke profiles each task's held-out set is at most as large as its own evaluation (the
+    science profiles choose their own sizes)."""
+    now = resolve_profile(name)
+    for task in json.loads(now["tasks"]):
+        own, held_out = (int(now[f"task.{task}.evaluate.{key}"]) for key in ("episodes", "held_out_episodes"))
+        assert held_out <= own, f"{name}: {task} plays {held_out} held-out episodes beside its own {own}"
