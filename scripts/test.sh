@@ -9,4 +9,4 @@ ruff check src pipeline tests benchmarks
 lint-imports   # the import contracts of pyproject.toml (docs/architecture.md)
 # One pytest-xdist worker per core, each test sent to whichever is free (its session and module fixtures are built
 # in each worker that needs them). Pass `-n 0` to run in this process: `bash scripts/test.sh -n 0 tests/test_io.py`.
-pytest -q -n logical "$@"
+pytest -q -n logical --dist loadgroup "$@"

@@ -41,6 +41,40 @@ def no_mlflow_run_left_active() -> Iterator[None]:
         pytest.fail(f"the test left MLflow run {leaked.info.run_id} active (something logged outside a stage run)")
 
 
+#: session fixtures built once and shared by tests of several modules (the others are cheap to build twice)
+SHARED_SESSION_FIXTURES = ("smoke_repo",)
+
+
+def shared_fixture_group(item: pytest.Item) -> str | None:
+    """The costly shared fixture an item uses, as an xdist group name: the smoke project (:func:`smoke_repo`), or the
+    item's module when it uses a module-scoped fixture of its own. None for an item that uses neither."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return None
+    for name in SHARED_SESSION_FIXTURES:
+        if name in info.name2fixturedefs:
+            return name
+    for definitions in info.name2fixturedefs.values():
+        definition = definitions[-1]
+        if definition.scope == "module" and definition.baseid and "conftest" not in definition.baseid:
+            return definition.baseid
+    return None
+
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` selects: the quick tier's ``-m "not slow"`` sees the added marks
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """End-to-end tests are slow tests. Tests that share a costly fixture run in one pytest-xdist worker
+    (``--dist loadgroup`` in scripts/test.sh), so it is built once per session rather than once in each worker; the
+    smoke project's tests go first, so that the longest group does not start last."""
+    for item in items:
+        if item.get_closest_marker("e2e") is not None:
+            item.add_marker(pytest.mark.slow)  # the quick tier (-m "not slow") leaves end-to-end tests out too
+        group = shared_fixture_group(item)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+    items.sort(key=lambda item: shared_fixture_group(item) != SHARED_SESSION_FIXTURES[0])  # stable: order kept
+
+
 def pytest_configure(config: pytest.Config) -> None:
     # Tiny networks run fastest on one thread; extra intra-op threads only contend with other work on the machine:
     # the tests run in one pytest-xdist worker per core (scripts/test.sh), and the stages, `dvc` and sweep workers

@@ -68,6 +68,7 @@ def test_tiny_keeps_the_profiles_shapes_and_shrinks_its_work(tmp_path: Path) -> 
     assert "--tiny" in (tmp_path / "tiny.yaml").read_text().splitlines()[0]
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("profile", PROFILES)
 def test_every_profile_runs_end_to_end_at_tiny_scale(
     profile: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch

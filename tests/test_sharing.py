@@ -56,9 +56,10 @@ def test_the_queue_runs_two_experiments_at_once_one_of_them_the_sweeps_best_tria
     smoke_repo: Path, tmp_path: Path
 ) -> None:
     repo = _committed_copy(smoke_repo, tmp_path / "exp")
-    # the trial scores its phases (4 stages each) rather than their gains over controls (6): no stage reads `sweep`
-    run_tool(["adaptdiffuser", "set", "sweep.objective=score"], repo)
-    run_tool(["git", "commit", "-qam", "sweep on the score"], repo)
+    # the queue is what this test is about: one phase (the smoke project runs two), whose trial scores it (4 stages)
+    # rather than its gain over the control (6); no stage reads `sweep`, and dropping phase 2 reruns no other phase
+    run_tool(["adaptdiffuser", "set", "sweep.objective=score", "phases={phase1: {previous: 0}}"], repo)
+    run_tool(["git", "commit", "-qam", "one phase, swept on the score"], repo)
     swept = run_tool(["adaptdiffuser", "sweep", "--trials", "1", "--workers", "1", "--dvc-exp", "queue"], repo)
     (best,) = re.findall(r"queued as DVC experiment (\S+):", swept)
     assert best == "adaptdiffuser-best-trial0"
