@@ -23,6 +23,7 @@ from adaptdiffuser.stages.pool import summary_of
 from adaptdiffuser.tooling.long_run import log_path, running_record, start, status, stop
 
 MAZE = "maze2d-umaze"
+STEPS, EVERY = 400, 50  # pretraining steps and steps between checkpoints: 20-30 s a seed on a busy 2-core machine
 
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -105,7 +106,7 @@ def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
     assert _gone(int((root / "stubborn.pid").read_text()))
 
     # a run that ends by itself says how; one that cannot start is refused
-    start(root, ["sh", "-c", "exit 3"])
+    start(root, ["sh", "-c", "printf 'a progress bar'; exit 3"])  # how it ended goes on a line of its own
     _wait_for(lambda: _ended(root), root)
     assert status(root)[0] == f"failed: exit status 3 (see {log_path(root)}); continue: adaptdiffuser run start"
     start(root, ["true"])
@@ -150,10 +151,10 @@ def test_a_stopped_dvc_repro_leaves_no_zombie_holding_dvcs_lock(tmp_path: Path) 
 
 def _phase0_of_one_task(path: Path) -> None:
     """Phase 0 of the maze task alone over two training seeds, with a pretraining long enough to be stopped between
-    its checkpoints, 100 steps apart."""
+    its checkpoints, ``EVERY`` steps apart."""
     raw = yaml.safe_load(path.read_text())
     raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={}, seeds=[0, 1])
-    raw["pretrain"] |= {"steps": 1000, "checkpoint_every": 100}
+    raw["pretrain"] |= {"steps": STEPS, "checkpoint_every": EVERY}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
 
@@ -181,7 +182,7 @@ def test_a_stopped_run_continues_on_another_machine_and_a_killed_one_where_it_is
     stopped = int(stops[0])
     said = run_tool(["adaptdiffuser", "run", "status"], first)
     assert "stopped or killed" in said and f"pretrain@{MAZE}" in said  # dvc status: pretraining is left
-    assert f"resume state: {MAZE}-phase0-seed0.pt (step 1000)" in said  # finished, kept until the stage ends
+    assert f"resume state: {MAZE}-phase0-seed0.pt (step {STEPS})" in said  # finished, kept until the stage ends
     assert f"resume state: {MAZE}-phase0-seed1.pt (step {stopped})" in said
 
     # the machine goes: what continues the run exactly is its resume states and DVC's run cache of the stages that
@@ -197,17 +198,18 @@ def test_a_stopped_run_continues_on_another_machine_and_a_killed_one_where_it_is
     run_tool(["adaptdiffuser", "run", "start", "--", "dvc", "repro", "--pull"], second)
     # then killed outright (SIGKILL, as when the machine goes) once the resumed training has passed a checkpoint
     _wait_for(lambda: _state_step(second / seed1) > stopped, second)
-    os.killpg(_pgid(second), signal.SIGKILL)  # DVC and its stage; the run's supervisor reaps them
+    dvc_pid = _pgid(second)
+    os.killpg(dvc_pid, signal.SIGKILL)  # DVC and its stage; the run's supervisor reaps them
     _wait_for(lambda: _ended(second), second)
-    assert "stopped or killed" in run_tool(["adaptdiffuser", "run", "status"], second)
+    assert _gone(dvc_pid) and "stopped or killed (by SIGKILL)" in run_tool(["adaptdiffuser", "run", "status"], second)
     run_tool(["adaptdiffuser", "run", "start"], second)  # the same command continues it
     _wait_for(lambda: _ended(second), second)
 
     log = log_path(second).read_text()
     assert f"Stage 'collect@{MAZE}' is cached - skipping run" in log  # the data from the run cache, not collected
     # the first seed is not trained again, the second goes on from its checkpoints, never from step 0
-    assert "resuming training from step 1000" in log and f"resuming training from step {stopped} " in log
-    assert any(f"resuming training from step {step} " in log for step in range(100, 1000, 100) if step > stopped)
+    assert f"resuming training from step {STEPS} " in log and f"resuming training from step {stopped} " in log
+    assert any(f"resuming training from step {step} " in log for step in range(EVERY, STEPS, EVERY) if step > stopped)
     said = run_tool(["adaptdiffuser", "run", "status"], second)
     assert "finished: ended by itself with exit status 0" in said, said
     assert "every stage is up to date" in said and "resume state:" not in said

@@ -43,16 +43,16 @@ def log_path(root: Path) -> Path:
 
 
 def running_record(root: Path) -> dict[str, Any] | None:
-    """The record of the run of ``root`` while its supervisor lives, else None."""
+    """The record of the run of ``root`` while its supervisor lives (``pgid`` None until the command has started),
+    else None."""
     folder = run_folder(root)
     if not is_running(folder):
         return None
-    for _ in range(100):  # a supervisor that has just taken the lock writes its record at once
-        record = read_record(folder)
-        if record is not None and record.get("pgid") is not None:
+    for _ in range(100):  # the supervisor writes its record as soon as it holds the lock
+        if (record := read_record(folder)) is not None:
             return record
         time.sleep(0.05)
-    return read_record(folder) or {"supervisor": None, "pgid": None, "state": "starting"}
+    return {"supervisor": None, "pgid": None, "state": "starting"}
 
 
 def _check_project(root: Path) -> None:
@@ -71,7 +71,8 @@ def start(root: Path, command: Sequence[str] = DEFAULT_COMMAND, wait_s: float = 
     with (folder / "start.lock").open("a") as guard:
         fcntl.flock(guard, fcntl.LOCK_EX)  # one start at a time: from the check until the supervisor runs
         if (record := running_record(root)) is not None:
-            raise StageError(f"{root.resolve()} already runs (pid {record['pgid']}): adaptdiffuser run status")
+            pid = record["pgid"] or record["supervisor"]
+            raise StageError(f"{root.resolve()} already runs (pid {pid}): adaptdiffuser run status")
         (folder / RECORD).unlink(missing_ok=True)
         supervisor = [sys.executable, "-m", "adaptdiffuser.tooling.run_supervisor", str(folder.resolve()), "."]
         with log_path(root).open("a") as sink:
@@ -99,6 +100,8 @@ def stop(root: Path, grace_s: float = 60.0) -> bool:
     record = running_record(root)
     if record is None:
         raise StageError(f"{root.resolve()} does not run")
+    if record["supervisor"] is None:
+        raise StageError(f"{root.resolve()} is starting its run: try again in a moment")
     folder = run_folder(root)
     for signum in (signal.SIGCONT, signal.SIGTERM):  # a paused supervisor is woken to take it
         try:
@@ -107,8 +110,10 @@ def stop(root: Path, grace_s: float = 60.0) -> bool:
             return False
     if _wait_ended(folder, grace_s):
         return False
-    with contextlib.suppress(ProcessLookupError):
-        os.killpg(record["pgid"], signal.SIGKILL)
+    pgid = (read_record(folder) or record)["pgid"]  # None while the command has not started
+    if pgid is not None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(pgid, signal.SIGKILL)
     if not _wait_ended(folder, 10.0):  # SIGKILL is not instant
         raise StageError(
             f"the run's supervisor (pid {record['supervisor']}) still waits for processes that left the run's "
@@ -203,7 +208,8 @@ def status(root: Path) -> list[str]:
         this_run = log.read_text(errors="replace").rsplit("\n== ", 1)[-1] if log.exists() else ""
         started = [line for line in this_run.splitlines() if line.startswith("Running stage")]
         last = started[-1] if started else "none yet"
-        lines = [f"running: pid {record['pgid']}; {len(started)} stages started by the log, the last: {last}"]
+        pid = f"pid {record['pgid']}" if record["pgid"] else f"starting, supervisor pid {record['supervisor']}"
+        lines = [f"running: {pid}; {len(started)} stages started by the log, the last: {last}"]
     elif not log.exists():
         lines = ["not started (adaptdiffuser run start)"]
     else:

@@ -101,6 +101,17 @@ def _stamp() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
 
 
+def _say(folder: Path, line: str) -> None:
+    """Append ``line`` to the log (this process's output) on a line of its own, after a progress bar too."""
+    try:
+        with (folder / LOG).open("rb") as log:
+            log.seek(-1, os.SEEK_END)
+            ends_line = log.read(1) == b"\n"
+    except OSError:  # no log, or an empty one
+        ends_line = True
+    print(("" if ends_line else "\n") + line, flush=True)
+
+
 def _outcome(code: int, stops: Sequence[int]) -> str:
     """How the command ended: ``finished``, ``failed`` (an exit status), ``stopped`` (after a stop this process
     passed on) or ``killed`` (by a signal nobody sent through here)."""
@@ -116,7 +127,7 @@ def supervise(folder: Path, root: Path, command: Sequence[str]) -> int:
     or 1 when the run could not start (another supervisor holds the lock, or the command cannot be started)."""
     lock = _take_lock(folder)
     if lock is None:
-        print(f"{_stamp()} another run holds {folder / LOCK}: not started", flush=True)
+        _say(folder, f"{_stamp()} another run holds {folder / LOCK}: not started")
         return 1
     _become_subreaper()
     received: list[int] = []
@@ -129,19 +140,21 @@ def supervise(folder: Path, root: Path, command: Sequence[str]) -> int:
 
     for signum in STOPS:
         signal.signal(signum, on_stop)
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
     record: dict[str, Any] = {
-        "supervisor": os.getpid(), "pgid": None, "command": list(command), "started": _stamp(),
-        "commit": head.stdout.strip() or None, "state": "starting", "exit_status": None, "stopped_by": None,
+        "supervisor": os.getpid(), "pgid": None, "command": list(command), "started": _stamp(), "commit": None,
+        "state": "starting", "exit_status": None, "stopped_by": None,
     }  # fmt: skip
-    print(f"== {record['started']} {' '.join(command)} at {record['commit'] or 'no commit'}", flush=True)
+    write_record(folder, record)  # a stop from now on is passed on once the command runs
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
+    record["commit"] = head.stdout.strip() or None
+    _say(folder, f"== {record['started']} {' '.join(command)} at {record['commit'] or 'no commit'}")
     try:
         child = subprocess.Popen(
             list(command), cwd=root, env=child_env(root), stdin=subprocess.DEVNULL, process_group=0,
             preexec_fn=die_with_parent,  # should this supervisor be killed outright, nothing of the run goes on alone
         )  # fmt: skip
     except OSError as err:
-        print(f"cannot start {command[0]}: {err}", flush=True)
+        _say(folder, f"cannot start {command[0]}: {err}")
         write_record(folder, record | {"state": "not-started", "error": f"cannot start {command[0]}: {err}"})
         return 1
     group.append(child.pid)
@@ -155,7 +168,7 @@ def supervise(folder: Path, root: Path, command: Sequence[str]) -> int:
         "stopped_by": signal.Signals(received[0]).name if received else None, "ended": _stamp(),
     }  # fmt: skip
     write_record(folder, record)
-    print(f"== {record['ended']} {record['state']} (exit status {child.returncode})", flush=True)
+    _say(folder, f"== {record['ended']} {record['state']} (exit status {child.returncode})")
     return 0
 
 
