@@ -157,10 +157,12 @@ def supervise(folder: Path, root: Path, command: Sequence[str]) -> int:
         _say(folder, f"cannot start {command[0]}: {err}")
         write_record(folder, record | {"state": "not-started", "error": f"cannot start {command[0]}: {err}"})
         return 1
+    signal.pthread_sigmask(signal.SIG_BLOCK, STOPS)  # each stop passed on once: by the handler, or here
     group.append(child.pid)
-    write_record(folder, record | {"pgid": child.pid, "state": "running"})
     for signum in received:  # a stop that came while the command started
         _signal_group(child.pid, signum)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, STOPS)
+    write_record(folder, record | {"pgid": child.pid, "state": "running"})
     status = _reap_all(child.pid)
     child.returncode = os.waitstatus_to_exitcode(status)  # reaped here, not by Popen
     record |= {
