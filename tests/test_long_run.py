@@ -20,9 +20,10 @@ import yaml
 from smoke_project import REPO, make_smoke_project, run_tool, tool_env
 
 from adaptdiffuser.stages.pool import summary_of
-from adaptdiffuser.tooling.long_run import group_members, log_path, stop
+from adaptdiffuser.tooling.long_run import log_path, running_record, start, status, stop
 
 MAZE = "maze2d-umaze"
+STEPS, EVERY = 400, 50  # pretraining steps and steps between checkpoints: 20-30 s a seed on a busy 2-core machine
 
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -30,8 +31,14 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(["adaptdiffuser", "run", *args], cwd=cwd, env=tool_env(), capture_output=True, text=True)
 
 
-def _pid(root: Path) -> int:
-    return int((root / ".dvc" / "tmp" / "long-run" / "pid").read_text().split()[0])
+def _pgid(root: Path) -> int:
+    """The process group of the run's command, from the run's record."""
+    return json.loads((root / ".long-run" / "run.json").read_text())["pgid"]
+
+
+def _gone(pid: int) -> bool:
+    """Whether process ``pid`` is gone and reaped (a zombie keeps its /proc entry, and DVC takes it for alive)."""
+    return not Path(f"/proc/{pid}").exists()
 
 
 def _wait_for(condition: Callable[[], bool], root: Path, timeout_s: float = 600.0) -> None:
@@ -39,11 +46,12 @@ def _wait_for(condition: Callable[[], bool], root: Path, timeout_s: float = 600.
     deadline = time.monotonic() + timeout_s
     while not condition():
         assert time.monotonic() < deadline, log_path(root).read_text() if log_path(root).exists() else "no log"
-        time.sleep(0.2)
+        time.sleep(0.1)
 
 
 def _ended(root: Path) -> bool:
-    return "running:" not in _run("status", cwd=root).stdout
+    """Whether the run of ``root`` has ended: its supervisor has reaped every process of it and gone."""
+    return running_record(root) is None
 
 
 def _bare_project(root: Path) -> Path:
@@ -54,57 +62,99 @@ def _bare_project(root: Path) -> Path:
     return root
 
 
+def _dvc_files(root: Path) -> dict[str, bytes]:
+    """Every file under ``.dvc/`` with its content."""
+    return {str(path.relative_to(root)): path.read_bytes() for path in (root / ".dvc").rglob("*") if path.is_file()}
+
+
 def test_stop_ends_the_run_and_everything_it_started(tmp_path: Path) -> None:
     root = _bare_project(tmp_path / "repo")
+    dvc_before = _dvc_files(root)
     # a child process, as DVC starts its stages, that takes a while to go when told to (as a training stage ends its
-    # step and writes its resume state): stop waits for it. It says when its trap is set (a TERM before would end it)
-    child = "trap 'sleep 2; echo saved > saved.txt; exit 143' TERM; echo > trapped.txt; while true; do sleep 0.1; done"
-    (root / "work.sh").write_text(f"( {child} ) &\nwait\n")
+    # step and writes its resume state): stop waits for it. Its pid is written once its trap is set (a TERM before
+    # would end it), and the script writes its own
+    child = "trap 'sleep 1; echo saved > saved.txt; exit 143' TERM; echo $BASHPID > child.pid; "
+    child += "while :; do sleep 1; done"
+    (root / "work.sh").write_text(f"echo $$ > script.pid\n( {child} ) &\nwait\n")
     out = run_tool(["adaptdiffuser", "run", "start", "--", "bash", "work.sh"], root)
     assert "running in the background" in out
-    pid = _pid(root)
-    _wait_for(lambda: len(group_members(pid)) >= 3 and (root / "trapped.txt").exists(), root)  # sh, bash, child
+    pgid = _pgid(root)
+    _wait_for(lambda: (root / "child.pid").exists() and (root / "script.pid").exists(), root)
+    pids = [int((root / name).read_text()) for name in ("script.pid", "child.pid")]
     refused = _run("start", cwd=root)
-    assert refused.returncode == 2 and f"already runs (pid {pid})" in refused.stderr
-    assert "running: pid" in _run("status", cwd=root).stdout
+    assert refused.returncode == 2 and f"already runs (pid {pgid})" in refused.stderr
+    assert f"running: pid {pgid}" in _run("status", cwd=root).stdout
 
-    os.killpg(pid, signal.SIGSTOP)  # paused, as to lend the CPU for a while: stop wakes it to take the TERM
+    os.killpg(pgid, signal.SIGSTOP)  # paused, as to lend the CPU for a while: stop wakes it to take the TERM
     out = run_tool(["adaptdiffuser", "run", "stop"], root)
     assert out.startswith("stopped;") and "adaptdiffuser run start" in out
-    assert group_members(pid) == []  # the script and its child are gone
+    assert all(_gone(pid) for pid in pids)  # the script and its child are gone, and reaped: no zombie is left
     assert (root / "saved.txt").read_text() == "saved\n"  # the child was let finish
+    assert _dvc_files(root) == dvc_before  # nothing of a start and a stop is written under .dvc/ (no rwlock)
     again = _run("stop", cwd=root)
     assert again.returncode == 2 and "does not run" in again.stderr
-    status = _run("status", cwd=root).stdout
-    assert "stopped or killed" in status and "dvc status: every stage is up to date" in status
+    said = _run("status", cwd=root).stdout
+    assert "stopped or killed (by adaptdiffuser run stop, SIGTERM)" in said
+    assert "dvc status: every stage is up to date" in said
 
-    # a child that ignores the TERM is killed after the grace period
-    (root / "stubborn.sh").write_text("trap '' TERM; echo > trapped.txt; while true; do sleep 0.1; done\n")
-    (root / "trapped.txt").unlink()
-    run_tool(["adaptdiffuser", "run", "start", "--", "bash", "stubborn.sh"], root)
-    _wait_for((root / "trapped.txt").exists, root)
-    assert run_tool(["adaptdiffuser", "run", "stop", "--grace", "1"], root).startswith("killed after 1 s")
-    assert group_members(_pid(root)) == []
+    # the same in this process, as the command line is a thin layer over it: a child that ignores the TERM is killed
+    # after the grace period
+    (root / "stubborn.sh").write_text("trap '' TERM; echo $$ > stubborn.pid; while :; do sleep 1; done\n")
+    start(root, ["bash", "stubborn.sh"])
+    _wait_for((root / "stubborn.pid").exists, root)
+    assert stop(root, grace_s=1) is True  # SIGKILL was needed
+    assert _gone(int((root / "stubborn.pid").read_text()))
 
-    # a run that ends by itself says how
-    run_tool(["adaptdiffuser", "run", "start", "--", "sh", "-c", "exit 3"], root)
+    # a run that ends by itself says how; one that cannot start is refused
+    start(root, ["sh", "-c", "printf 'a progress bar'; exit 3"])  # how it ended goes on a line of its own
     _wait_for(lambda: _ended(root), root)
-    assert "failed: exit status 3" in _run("status", cwd=root).stdout
-    run_tool(["adaptdiffuser", "run", "start", "--", "true"], root)
+    assert status(root)[0] == f"failed: exit status 3 (see {log_path(root)}); continue: adaptdiffuser run start"
+    start(root, ["true"])
     _wait_for(lambda: _ended(root), root)
-    assert "finished: ended by itself with exit status 0" in _run("status", cwd=root).stdout
-    assert log_path(root).read_text().count("== ") == 4  # every start appends to one log
+    refused = _run("start", "--", "no-such-command-here", cwd=root)
+    assert refused.returncode == 2 and "cannot start no-such-command-here" in refused.stderr
+    ends = re.findall(r"^== \S+ (\w+) \(exit status", log_path(root).read_text(), re.MULTILINE)
+    assert ends == ["stopped", "stopped", "failed", "finished"]  # every start appends to one log, and how it ended
+    git_status = run_tool(["git", "status", "--porcelain", "--untracked-files=all"], root)
+    assert (root / ".long-run" / "run.json").exists() and ".long-run" not in git_status  # the folder ignores itself
 
     refused = _run("status", cwd=tmp_path)
     assert refused.returncode == 2 and "is not a DVC project" in refused.stderr
 
 
+def test_a_stopped_dvc_repro_leaves_no_zombie_holding_dvcs_lock(tmp_path: Path) -> None:
+    """DVC records its pid in ``.dvc/tmp/rwlock`` while a stage runs; a stop ends it there, and the entry stays. DVC
+    ignores entries of processes that are gone, and the run reaps them, so the next ``dvc repro`` goes on, with
+    nothing of ours editing DVC's file."""
+    root = _bare_project(tmp_path / "repo")
+    script = "import pathlib as p, time; p.Path('started').touch(); time.sleep(0 if p.Path('quick').exists() else 300)"
+    stage = {"cmd": f'python -c "{script}" && echo done > out.txt', "outs": ["out.txt"]}
+    (root / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"slow": stage}}))
+    run_tool(["git", "add", "dvc.yaml"], root)
+    run_tool(["git", "-c", "user.email=t@example.com", "-c", "user.name=t", "commit", "-qm", "slow"], root)
+    run_tool(["adaptdiffuser", "run", "start"], root)  # dvc repro
+    _wait_for((root / "started").exists, root, timeout_s=120)
+    rwlock = root / ".dvc" / "tmp" / "rwlock"
+    dvc_pid = json.loads(rwlock.read_text())["write"][str((root / "out.txt").resolve())]["pid"]
+    assert dvc_pid == _pgid(root)  # the run's command is DVC itself
+
+    assert run_tool(["adaptdiffuser", "run", "stop", "--grace", "20"], root).startswith("stopped;")
+    assert str(dvc_pid) in rwlock.read_text() and _gone(dvc_pid)  # DVC's entry is left, its process reaped
+    assert "dvc status: 1 stages to run (slow)" in run_tool(["adaptdiffuser", "run", "status"], root)
+
+    (root / "quick").touch()
+    run_tool(["adaptdiffuser", "run", "start"], root)  # not refused by DVC: the lock's holder is gone
+    _wait_for(lambda: _ended(root), root, timeout_s=120)
+    assert status(root)[:2] == ["finished: ended by itself with exit status 0", "dvc status: every stage is up to date"]
+    assert (root / "out.txt").read_text() == "done\n"
+
+
 def _phase0_of_one_task(path: Path) -> None:
     """Phase 0 of the maze task alone over two training seeds, with a pretraining long enough to be stopped between
-    its checkpoints, 100 steps apart."""
+    its checkpoints, ``EVERY`` steps apart."""
     raw = yaml.safe_load(path.read_text())
     raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={}, seeds=[0, 1])
-    raw["pretrain"] |= {"steps": 1000, "checkpoint_every": 100}
+    raw["pretrain"] |= {"steps": STEPS, "checkpoint_every": EVERY}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
 
@@ -130,10 +180,10 @@ def test_a_stopped_run_continues_on_another_machine_and_a_killed_one_where_it_is
     stops = re.findall(r"SIGTERM: stopping after step (\d+),", log_path(first).read_text())
     assert len(stops) == 1, log_path(first).read_text()  # seed 1's pretraining took the stop
     stopped = int(stops[0])
-    status = run_tool(["adaptdiffuser", "run", "status"], first)
-    assert "stopped or killed" in status and f"pretrain@{MAZE}" in status  # dvc status: pretraining is left
-    assert f"resume state: {MAZE}-phase0-seed0.pt (step 1000)" in status  # finished, kept until the stage ends
-    assert f"resume state: {MAZE}-phase0-seed1.pt (step {stopped})" in status
+    said = run_tool(["adaptdiffuser", "run", "status"], first)
+    assert "stopped or killed" in said and f"pretrain@{MAZE}" in said  # dvc status: pretraining is left
+    assert f"resume state: {MAZE}-phase0-seed0.pt (step {STEPS})" in said  # finished, kept until the stage ends
+    assert f"resume state: {MAZE}-phase0-seed1.pt (step {stopped})" in said
 
     # the machine goes: what continues the run exactly is its resume states and DVC's run cache of the stages that
     # finished (on a remote, which `dvc repro --pull` reads), on a clone of the same commit
@@ -148,21 +198,21 @@ def test_a_stopped_run_continues_on_another_machine_and_a_killed_one_where_it_is
     run_tool(["adaptdiffuser", "run", "start", "--", "dvc", "repro", "--pull"], second)
     # then killed outright (SIGKILL, as when the machine goes) once the resumed training has passed a checkpoint
     _wait_for(lambda: _state_step(second / seed1) > stopped, second)
-    pid = _pid(second)
-    os.killpg(pid, signal.SIGKILL)
-    _wait_for(lambda: group_members(pid) == [], second)
-    assert "stopped or killed" in run_tool(["adaptdiffuser", "run", "status"], second)
+    dvc_pid = _pgid(second)
+    os.killpg(dvc_pid, signal.SIGKILL)  # DVC and its stage; the run's supervisor reaps them
+    _wait_for(lambda: _ended(second), second)
+    assert _gone(dvc_pid) and "stopped or killed (by SIGKILL)" in run_tool(["adaptdiffuser", "run", "status"], second)
     run_tool(["adaptdiffuser", "run", "start"], second)  # the same command continues it
     _wait_for(lambda: _ended(second), second)
 
     log = log_path(second).read_text()
     assert f"Stage 'collect@{MAZE}' is cached - skipping run" in log  # the data from the run cache, not collected
     # the first seed is not trained again, the second goes on from its checkpoints, never from step 0
-    assert "resuming training from step 1000" in log and f"resuming training from step {stopped} " in log
-    assert any(f"resuming training from step {step} " in log for step in range(100, 1000, 100) if step > stopped)
-    status = run_tool(["adaptdiffuser", "run", "status"], second)
-    assert "finished: ended by itself with exit status 0" in status, status
-    assert "every stage is up to date" in status and "resume state:" not in status
+    assert f"resuming training from step {STEPS} " in log and f"resuming training from step {stopped} " in log
+    assert any(f"resuming training from step {step} " in log for step in range(EVERY, STEPS, EVERY) if step > stopped)
+    said = run_tool(["adaptdiffuser", "run", "status"], second)
+    assert "finished: ended by itself with exit status 0" in said, said
+    assert "every stage is up to date" in said and "resume state:" not in said
     assert (second / f"metrics/tasks/{MAZE}/phase0-unseen.json").exists()
 
 

@@ -504,7 +504,7 @@ def run_start(
     command: Annotated[list[str] | None, typer.Argument(help="command to run (default: dvc repro); after --")] = None,
     repo: RepoOption = Path("."),
 ) -> None:
-    """Start the run in the background (log: .dvc/tmp/long-run/log). Starting again after a stop continues it: DVC
+    """Start the run in the background (log: .long-run/log). Starting again after a stop continues it: DVC
     skips finished stages and training resumes from models/.resume/."""
     from adaptdiffuser.tooling.long_run import DEFAULT_COMMAND, log_path, start
 

@@ -1,12 +1,13 @@
 """A long run in the background of a DVC project: ``adaptdiffuser run start|status|stop``.
 
 ``start`` runs ``dvc repro`` (or another command that reruns cleanly, such as ``bash scripts/science_maze.sh``)
-detached from the terminal, in a process group of its own, its output appended to a log; its pid, and its exit status
-once it ends by itself, are kept beside the log in ``.dvc/tmp/long-run/`` (ignored by git and DVC). There is no
-``resume``: starting again continues, since DVC skips the stages that finished and a training stage resumes from its
-last state in ``models/.resume/``. ``stop`` sends SIGTERM to the run's process group, so a training stage ends its
-step and writes its resume state first (``adaptdiffuser.stop_signals``), and SIGKILL to what is left after a grace
-period. Linux only: a run's processes are read from ``/proc``.
+detached from the terminal under a supervisor (:mod:`adaptdiffuser.tooling.run_supervisor`) that waits for it and
+every process it leaves, so none lingers as a zombie that DVC takes for a live holder of its lock. The run's record,
+its lock and its log (every start appends to it) are in ``.long-run/`` at the project's root, which ignores itself in
+git; nothing is written under ``.dvc/``. There is no ``resume``: starting again continues, since DVC skips the stages
+that finished and a training stage resumes from its last state in ``models/.resume/``. ``stop`` has the supervisor
+pass SIGTERM on to the command's process group, so a training stage ends its step and writes its resume state first
+(``adaptdiffuser.stop_signals``), and sends SIGKILL to what is left of that group after a grace period.
 """
 
 from __future__ import annotations
@@ -17,81 +18,41 @@ import json
 import os
 import signal
 import subprocess
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from adaptdiffuser.errors import StageError
-from adaptdiffuser.io import atomic_path
+from adaptdiffuser.tooling.run_supervisor import LOG, RECORD, is_running, read_record
 
-STATE_DIR = Path(".dvc") / "tmp" / "long-run"
+RUN_DIR = Path(".long-run")
 DEFAULT_COMMAND = ("dvc", "repro")
 RESUME_DIR = Path("models") / ".resume"
 
 
+def run_folder(root: Path) -> Path:
+    """The folder of the run's record, lock and log."""
+    return root / RUN_DIR
+
+
 def log_path(root: Path) -> Path:
     """The run's log (every start appends to it)."""
-    return root / STATE_DIR / "log"
+    return run_folder(root) / LOG
 
 
-def _pid_path(root: Path) -> Path:
-    return root / STATE_DIR / "pid"
-
-
-def _rc_path(root: Path) -> Path:
-    """Written by the run when it ends by itself; absent while it runs, or when it was stopped or killed."""
-    return root / STATE_DIR / "rc"
-
-
-def _proc_stat(pid: int) -> list[str] | None:
-    """The fields of ``/proc/<pid>/stat`` after ``pid (comm)`` (state, ppid, pgrp, ...), or None if it is gone."""
-    try:
-        text = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
+def running_record(root: Path) -> dict[str, Any] | None:
+    """The record of the run of ``root`` while its supervisor lives (``pgid`` None until the command has started),
+    else None."""
+    folder = run_folder(root)
+    if not is_running(folder):
         return None
-    return text.rsplit(")", 1)[1].split()
-
-
-def group_members(pgid: int) -> list[int]:
-    """The live processes (zombies not counted) of process group ``pgid``."""
-    members = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            fields = _proc_stat(int(entry.name))
-            if fields is not None and int(fields[2]) == pgid and fields[0] != "Z":
-                members.append(int(entry.name))
-    return members
-
-
-def _start_time(pid: int) -> str | None:
-    """When process ``pid`` started (clock ticks since boot), or None if it is gone: with the boot's id, what tells
-    a run's pid from the same number reused by another process."""
-    fields = _proc_stat(pid)
-    return None if fields is None else fields[19]
-
-
-def _boot_id() -> str:
-    try:
-        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
-    except OSError:
-        return ""
-
-
-def running_pid(root: Path) -> int | None:
-    """The pid (and process group) of the run of ``root`` while any process of it lives, else None. The leader may be
-    gone while its stages still write their resume state; a pid file of another boot, or whose leader is another
-    process under a reused pid, is not a run."""
-    try:
-        pid_text, started, boot = _pid_path(root).read_text().split()
-        pid = int(pid_text)
-    except (OSError, ValueError):
-        return None
-    if boot != _boot_id():
-        return None
-    leader = _start_time(pid)
-    if leader is not None and leader != started:
-        return None  # the pid was reused
-    return pid if group_members(pid) else None
+    for _ in range(100):  # the supervisor writes its record as soon as it holds the lock
+        if (record := read_record(folder)) is not None:
+            return record
+        time.sleep(0.05)
+    return {"supervisor": None, "pgid": None, "state": "starting"}
 
 
 def _check_project(root: Path) -> None:
@@ -99,97 +60,80 @@ def _check_project(root: Path) -> None:
         raise StageError(f"{root.resolve()} is not a DVC project (no .dvc folder)")
 
 
-def start(root: Path, command: Sequence[str] = DEFAULT_COMMAND) -> int:
-    """Start ``command`` in ``root`` in the background and return its pid; refused while a run of ``root`` runs.
-    The project's own ``src/`` comes first on ``PYTHONPATH``, so a clone or worktree at another commit runs its own
-    code with a shared virtual environment."""
+def start(root: Path, command: Sequence[str] = DEFAULT_COMMAND, wait_s: float = 60.0) -> int:
+    """Start ``command`` in ``root`` in the background under its supervisor and return the command's pid (its process
+    group); refused while a run of ``root`` runs, and when the command cannot be started."""
     _check_project(root)
-    log = log_path(root)
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with (root / STATE_DIR / "lock").open("w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # one start at a time: from the check until the pid file is written
-        return _start_locked(root, command, log)
-
-
-def _start_locked(root: Path, command: Sequence[str], log: Path) -> int:
-    if (pid := running_pid(root)) is not None:
-        raise StageError(f"{root.resolve()} already runs (pid {pid}): adaptdiffuser run status")
-    clear_stale_dvc_locks(root)
-    _rc_path(root).unlink(missing_ok=True)
-    env = dict(os.environ, DVC_NO_ANALYTICS="1", LONG_RUN_RC=str(_rc_path(root).resolve()))
-    src = (root / "src").resolve()
-    if (src / "adaptdiffuser").is_dir():
-        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(src), env.get("PYTHONPATH")]))
-    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True)
-    stamp = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-    with log.open("a") as sink:
-        sink.write(f"== {stamp} {' '.join(command)} at {head.stdout.strip() or 'no commit'}\n")
-        sink.flush()
-        # sh writes the exit status only when the command ends by itself: a stop ends sh too (SIGTERM)
-        wrapper = ["sh", "-c", '"$@"; echo $? > "$LONG_RUN_RC"', "long-run", *command]
-        child = subprocess.Popen(
-            wrapper, cwd=root, env=env, stdin=subprocess.DEVNULL, stdout=sink, stderr=subprocess.STDOUT,
-            start_new_session=True,
-        )  # fmt: skip
-    with atomic_path(_pid_path(root)) as tmp:
-        tmp.write_text(f"{child.pid} {_start_time(child.pid) or 0} {_boot_id()}\n")
-    return child.pid
+    folder = run_folder(root)
+    folder.mkdir(exist_ok=True)
+    if not (folder / ".gitignore").exists():
+        (folder / ".gitignore").write_text("# adaptdiffuser run: the run's record, lock and log\n*\n")
+    with (folder / "start.lock").open("a") as guard:
+        fcntl.flock(guard, fcntl.LOCK_EX)  # one start at a time: from the check until the supervisor runs
+        if (record := running_record(root)) is not None:
+            pid = record["pgid"] or record["supervisor"]
+            raise StageError(f"{root.resolve()} already runs (pid {pid}): adaptdiffuser run status")
+        (folder / RECORD).unlink(missing_ok=True)
+        supervisor = [sys.executable, "-m", "adaptdiffuser.tooling.run_supervisor", str(folder.resolve()), "."]
+        with log_path(root).open("a") as sink:
+            first = subprocess.Popen(
+                [*supervisor, "--", *command], cwd=root, stdin=subprocess.DEVNULL, stdout=sink,
+                stderr=subprocess.STDOUT, start_new_session=True,
+            )  # fmt: skip
+        if first.wait() != 0:  # it forks the supervisor and exits at once
+            raise StageError(f"the run's supervisor did not start (see {log_path(root)})")
+        deadline = time.monotonic() + wait_s
+        while (record := read_record(folder)) is None or record["state"] == "starting":
+            if time.monotonic() > deadline:
+                raise StageError(f"the run did not start in {wait_s:g} s (see {log_path(root)})")
+            time.sleep(0.05)
+    if record["state"] == "not-started":
+        raise StageError(record["error"])
+    return int(record["pgid"])
 
 
 def stop(root: Path, grace_s: float = 60.0) -> bool:
-    """Stop the run of ``root``: SIGTERM (and SIGCONT, for a paused run) to its process group, then wait up to
-    ``grace_s`` for every process in it to end (a training stage writes its resume state first) before SIGKILL.
-    Returns whether SIGKILL was needed; refused when the run does not run."""
-    pid = running_pid(root)
-    if pid is None:
+    """Stop the run of ``root``: its supervisor passes SIGTERM (and SIGCONT, for a paused run) on to the command's
+    process group, and ``stop`` waits up to ``grace_s`` for every process of the run to end and be reaped (a training
+    stage writes its resume state first) before SIGKILL to the group. Returns whether SIGKILL was needed; refused
+    when the run does not run."""
+    record = running_record(root)
+    if record is None:
         raise StageError(f"{root.resolve()} does not run")
-    for signum in (signal.SIGTERM, signal.SIGCONT):
+    if record["supervisor"] is None:
+        raise StageError(f"{root.resolve()} is starting its run: try again in a moment")
+    folder = run_folder(root)
+    for signum in (signal.SIGCONT, signal.SIGTERM):  # a paused supervisor is woken to take it
         try:
-            os.killpg(pid, signum)
+            os.kill(record["supervisor"], signum)
         except ProcessLookupError:
             return False
-    deadline = time.monotonic() + grace_s
-    while group_members(pid):
+    if _wait_ended(folder, grace_s):
+        return False
+    pgid = (read_record(folder) or record)["pgid"]  # None while the command has not started
+    if pgid is not None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(pgid, signal.SIGKILL)
+    if not _wait_ended(folder, 10.0):  # SIGKILL is not instant
+        raise StageError(
+            f"the run's supervisor (pid {record['supervisor']}) still waits for processes that left the run's "
+            "process group after SIGKILL to it"
+        )
+    return True
+
+
+def _wait_ended(folder: Path, timeout_s: float) -> bool:
+    """Wait up to ``timeout_s`` for the supervisor in ``folder`` to end (it ends once it has reaped every process)."""
+    deadline = time.monotonic() + timeout_s
+    while is_running(folder):
         if time.monotonic() > deadline:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(pid, signal.SIGKILL)
-            for _ in range(100):  # SIGKILL is not instant: return once the group is gone (at most 10 s)
-                if not group_members(pid):
-                    break
-                time.sleep(0.1)
-            return True
-        time.sleep(0.2)
-    return False
-
-
-def _alive(pid: int) -> bool:
-    """Whether process ``pid`` runs (a zombie, which a container without an init that reaps may keep, does not)."""
-    fields = _proc_stat(pid)
-    return fields is not None and fields[0] != "Z"
-
-
-def clear_stale_dvc_locks(root: Path) -> None:
-    """Drop from DVC's ``.dvc/tmp/rwlock`` the entries of processes that no longer run. A stopped run leaves them
-    when its ``dvc`` ends by a signal; DVC drops those of vanished pids itself, but not those of unreaped zombies,
-    and would refuse every later command. Entries of live processes are kept."""
-    path = root / ".dvc" / "tmp" / "rwlock"
-    try:
-        lock = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return
-    write = {p: info for p, info in lock.get("write", {}).items() if _alive(int(info["pid"]))}
-    read = {
-        p: kept for p, infos in lock.get("read", {}).items() if (kept := [i for i in infos if _alive(int(i["pid"]))])
-    }
-    cleared = {key: value for key, value in (("write", write), ("read", read)) if value}
-    if cleared != lock:
-        with atomic_path(path) as tmp:
-            tmp.write_text(json.dumps(cleared))
+            return False
+        time.sleep(0.1)
+    return True
 
 
 def _dvc_status(root: Path) -> str:
     """What ``dvc status`` says is left to run, in one line."""
-    clear_stale_dvc_locks(root)
     out = subprocess.run(["dvc", "status", "--json"], cwd=root, capture_output=True, text=True)
     if out.returncode != 0:
         return f"dvc status failed: {(out.stderr.strip().splitlines() or ['?'])[-1]}"
@@ -235,26 +179,41 @@ def _log_tail(root: Path, lines: int = 5) -> list[str]:
     return [line.rsplit("\r", 1)[-1] for line in text.splitlines()[-lines:]]
 
 
+def _ended(record: dict[str, Any] | None, log: Path) -> str:
+    """One line on how the last run ended, from its record."""
+    record = record or {}
+    state = record.get("state")
+    again = "continue: adaptdiffuser run start"
+    if state == "finished":
+        return "finished: ended by itself with exit status 0"
+    if state == "failed":
+        return f"failed: exit status {record['exit_status']} (see {log}); {again}"
+    if state == "not-started":
+        return f"not started: {record['error']}"
+    if state == "stopped":
+        how = f"by adaptdiffuser run stop, {record['stopped_by']}"
+    elif state == "killed":
+        how = f"by {signal.Signals(-record['exit_status']).name}"
+    else:  # no record, or one of a supervisor that ended before it could say how the run ended
+        how = "its supervisor ended before it could say how"
+    return f"stopped or killed ({how}); {again}"
+
+
 def status(root: Path) -> list[str]:
     """Whether the run of ``root`` runs, finished or stopped; what DVC has left (from the log while it runs, as the
     run holds DVC's lock); each resume state; the log's last lines."""
     _check_project(root)
     log = log_path(root)
-    if (pid := running_pid(root)) is not None:
-        started = [line for line in log.read_text(errors="replace").splitlines() if line.startswith("Running stage")]
+    if (record := running_record(root)) is not None:
+        this_run = log.read_text(errors="replace").rsplit("\n== ", 1)[-1] if log.exists() else ""
+        started = [line for line in this_run.splitlines() if line.startswith("Running stage")]
         last = started[-1] if started else "none yet"
-        lines = [f"running: pid {pid}; {len(started)} stages started by the log, the last: {last}"]
+        pid = f"pid {record['pgid']}" if record["pgid"] else f"starting, supervisor pid {record['supervisor']}"
+        lines = [f"running: {pid}; {len(started)} stages started by the log, the last: {last}"]
     elif not log.exists():
         lines = ["not started (adaptdiffuser run start)"]
     else:
-        rc = _rc_path(root).read_text().strip() if _rc_path(root).exists() else None
-        if rc == "0":
-            lines = ["finished: ended by itself with exit status 0"]
-        elif rc is not None:
-            lines = [f"failed: exit status {rc} (see {log}); continue: adaptdiffuser run start"]
-        else:
-            lines = ["stopped or killed; continue: adaptdiffuser run start"]
-        lines.append(_dvc_status(root))
+        lines = [_ended(read_record(run_folder(root)), log), _dvc_status(root)]
     lines += resume_states(root)
     lines += [f"log: {line}" for line in _log_tail(root)]
     return lines
