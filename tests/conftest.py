@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 from deps_trace import traced_env
-from smoke_project import TRACES, make_smoke_project, run_tool
+from smoke_project import make_smoke_project, run_tool, traces_dir
 
 from adaptdiffuser.config import DiffusionParams, ModelParams, Params
 from adaptdiffuser.data.normalizer import MinMaxNormalizer
@@ -128,7 +128,7 @@ def rng() -> np.random.Generator:
 @pytest.fixture(scope="session")
 def smoke_repo(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A temporary git + DVC repository holding the project on the smoke profile, after one traced `dvc repro`
-    (its stage traces under :data:`smoke_project.TRACES`). Tests that change it restore it, or work on a copy."""
+    (its stage traces in :func:`smoke_project.traces_dir`). Tests that change it restore it, or work on a copy."""
     root = make_smoke_project(tmp_path_factory.mktemp("project"), run_tool)
-    run_tool(["dvc", "repro"], root, **traced_env(root / TRACES))
+    run_tool(["dvc", "repro"], root, **traced_env(traces_dir(root)))
     return root

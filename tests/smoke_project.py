@@ -12,9 +12,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-#: where the shared smoke repro (the ``smoke_repo`` fixture) writes its stage traces (tests/deps_trace.py)
-TRACES = ".dvc/tmp/deps-trace"
 PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
+
+
+def traces_dir(root: Path) -> Path:
+    """Where the shared smoke repro (the ``smoke_repo`` fixture) of the project at ``root`` writes its stage traces
+    (tests/deps_trace.py): a sibling folder, so that nothing is written into the project, DVC's files included."""
+    return root.parent / f"{root.name}-deps-trace"
 
 
 def make_smoke_project(

@@ -19,9 +19,9 @@ import yaml
 from deps_trace import check, load_traces, missing_message
 from dvc.repo import Repo
 from mlflow.tracking import MlflowClient
-from smoke_project import TRACES
 from smoke_project import run_tool as _run
 from smoke_project import tool_env as _env
+from smoke_project import traces_dir
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import apply_profile, load_params, stage_names
@@ -102,9 +102,9 @@ def test_repro_produces_data_model_and_metrics(smoke_repo: Path) -> None:
 @pytest.mark.e2e
 def test_dvc_yaml_lists_every_module_and_file_each_stage_uses(smoke_repo: Path) -> None:
     """The repro traced every stage (modules loaded, files read): each traced path is under one of its deps."""
-    traces = load_traces(smoke_repo / TRACES)  # not empty: every stage loaded the CLI and read something
+    traces = load_traces(traces_dir(smoke_repo))  # not empty: every stage loaded the CLI and read something
     assert all("src/adaptdiffuser/cli.py" in trace.modules and trace.reads for trace in traces.values())
-    message = missing_message(check(smoke_repo, smoke_repo / TRACES))  # raises if a stage left no trace
+    message = missing_message(check(smoke_repo, traces_dir(smoke_repo)))  # raises if a stage left no trace
     assert not message, f"dvc.yaml misses deps that stages use:\n{message}"
 
 
