@@ -620,7 +620,8 @@ def evaluate_kept(
             typer.echo(f"{name} ({label}: start states of seed {seed}, {n} episodes): {', '.join(parts)}")
         for what, m in played["interval"].items():
             extra = f", win rate {m['win_rate']:.2f}" if what == "gain" else ""
-            typer.echo(f"{what} ({label}) over {m['n_seeds']} models: {describe(m)}{extra}")
+            models = f"{m['n_seeds']} model" + ("s" if m["n_seeds"] != 1 else "")
+            typer.echo(f"{what} ({label}) over {models}: {describe(m)}{extra}")
     if into is not None:
         write_json(into, {"episodes": episodes, **out})
 
