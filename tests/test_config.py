@@ -25,6 +25,8 @@ from adaptdiffuser.config import (
     stage_names,
 )
 from adaptdiffuser.config.defaults import family_defaults
+from adaptdiffuser.config.start_states import KEPT_EVAL_SEED, KEPT_HELD_OUT_SEED, start_seeds, start_state_sets
+from adaptdiffuser.evaluation import episode_rng
 from adaptdiffuser.families.maze2d.params import EnvParams, Maze2DTaskParams
 from adaptdiffuser.family_registry import get_family
 
@@ -419,6 +421,7 @@ def test_bad_values_raise_config_error_naming_the_key(tmp_path: Path, overlay: d
 
 NAN, INF = float("nan"), float("inf")
 SEEDS = [f"{T}.collect.seed", "pretrain.seed", "evaluate.seed", f"{T}.gold_coin.seed", "sweep.seed"]
+SEEDS += ["sweep.evaluate_seed", "sweep.held_out_seed", "evaluate.held_out_seed"]
 SEEDS += [f"{T}.pretrain.seed", f"{T}.evaluate.seed"]
 SEEDS += ["evolution.generate.seed", "evolution.finetune.seed"]
 PHASE1 = {"phases": {"phase1": {"previous": 0}}}
@@ -470,6 +473,15 @@ REJECTED = [
     ({"seeds": [0, 1, 2], "sweep": {"evaluate_seed": 998}}, "sweep.evaluate_seed", "plus a training seed"),
     ({"sweep": {"evaluate_seed": 7000}}, "sweep.evaluate_seed", "evaluate.held_out_seed"),
     (umaze(evaluate={"held_out_seed": 1000}), f"{T}.evaluate.held_out_seed", "held-out start states must be others"),
+    # every set of start states against every other, each over the training seeds: the sweep's held-out set ...
+    ({"sweep": {"held_out_seed": 1000}}, "sweep.held_out_seed", "must not be tuned on the episodes"),
+    ({"seeds": [0, 1, 2], "sweep": {"held_out_seed": 6998}}, "sweep.held_out_seed", f"{T}.evaluate.held_out_seed"),
+    ({"sweep": {"held_out_seed": 5000}}, "sweep.held_out_seed", "others than its evaluation's"),
+    # ... and evaluate-kept's default re-tests, which the other keys must leave alone
+    (umaze(evaluate={"seed": 9000}), f"{T}.evaluate.seed", "evaluate-kept's default re-tests"),
+    ({"seeds": [0, 1, 2], "evaluate": {"held_out_seed": 9998}}, f"{T}.evaluate.held_out_seed", "--held-out-seed"),
+    ({"seeds": [0, 3], "sweep": {"evaluate_seed": 8997}}, "sweep.evaluate_seed", "evaluate-kept --eval-seed (9000)"),
+    ({"seeds": [0, 1000], "sweep": {"space": None}}, "seeds", "evaluate-kept's two default sets"),
     ({"sweep": {"task": "maze2d-large"}}, "sweep.task", "must be one of tasks"),
     ({"seeds": []}, "seeds", "needs at least one training seed"),
     ({"seeds": [0, 1, 0]}, "seeds", "lists a seed twice"),
@@ -584,6 +596,31 @@ def test_rejected_values_give_a_one_line_error_starting_with_the_key(
     assert len(message.splitlines()) == 1, message
     assert message.startswith(f"{key}: "), message
     assert reason in message, message
+
+
+def test_every_set_of_start_states_is_checked_and_no_two_share_an_episode(tmp_path: Path) -> None:
+    """The evolved task's six sets (evaluation, held out, the sweep's two, evaluate-kept's two) over five training
+    seeds: disjoint seed numbers, and, since episode i of seed b plays ``episode_rng(b, i)`` (the episode a word of
+    its own, not added to b), no episode of one set starts like any episode of another, however many each plays."""
+    params = load_params(write_params(tmp_path, {"seeds": [0, 1, 2, 3, 4]}))
+    sets = start_state_sets(params, UMAZE)
+    assert [s.key for s in sets] == [
+        f"{T}.evaluate.seed",
+        f"{T}.evaluate.held_out_seed",
+        "sweep.evaluate_seed",
+        "sweep.held_out_seed",
+        "evaluate-kept --eval-seed",
+        "evaluate-kept --held-out-seed",
+    ]
+    assert (sets[-2].base, sets[-1].base) == (KEPT_EVAL_SEED, KEPT_HELD_OUT_SEED)
+    numbers = [start_seeds(s.base, params.seeds) for s in sets]
+    assert sum(map(len, numbers)) == len(set().union(*numbers)) == 30
+    firsts = [episode_rng(seed, i).random() for seed in set().union(*numbers) for i in range(200)]
+    assert len(set(firsts)) == len(firsts)
+    # the sets meet as soon as two bases lie closer than the spread of the training seeds
+    with pytest.raises(ConfigError, match="sweep.held_out_seed: 5004 plus a training seed is sweep.evaluate_seed"):
+        load_params(write_params(tmp_path, {"seeds": [0, 1, 2, 3, 4], "sweep": {"held_out_seed": 5004}}))
+    load_params(write_params(tmp_path, {"seeds": [0, 1, 2, 3, 4], "sweep": {"held_out_seed": 5005}}))
 
 
 @pytest.mark.parametrize(

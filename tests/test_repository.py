@@ -3,6 +3,7 @@ generated data or training state (those live in DVC's cache); and a kept model s
 
 from __future__ import annotations
 
+import inspect
 import re
 import subprocess
 from pathlib import Path
@@ -14,6 +15,9 @@ from typer.testing import CliRunner
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.cli import app
+from adaptdiffuser.cli import evaluate_kept as cli_evaluate_kept
+from adaptdiffuser.config.start_states import KEPT_EVAL_SEED, KEPT_HELD_OUT_SEED
+from adaptdiffuser.errors import StageError
 from adaptdiffuser.stages.kept_models import MANIFEST, evaluate_kept, evaluate_kept_seeds, load_manifest
 
 GENERATED = (".parquet", ".npz", ".pkl", ".h5", ".hdf5")
@@ -78,8 +82,25 @@ def test_kept_models_of_several_seeds_play_their_own_start_states_and_give_an_in
     assert out["models"][names[1]]["episode_scores"] == alone["episode_scores"]
     gain = out["interval"]["gain"]
     assert (gain["n_seeds"], gain["n_episodes"]) == (2, 4) and gain["ci_low"] <= gain["mean"] <= gain["ci_high"]
-    same = evaluate_kept_seeds(REPO, names, episodes=4, eval_seed=3000, device=cpu, own_start_states=False)
+    assert gain["over"] == "seeds" and 0.0 <= gain["win_rate"] <= 1.0 and "probability_of_improvement" not in gain
+    same = evaluate_kept_seeds(
+        REPO, names, episodes=4, eval_seed=3000, device=cpu, own_start_states=False, held_out_seed=7000,
+        held_out_episodes=2,
+    )  # fmt: skip
     assert same["eval_seeds"] == {names[0]: 3000, names[1]: 3000}
+    held_out = same["held_out"]
+    assert held_out["eval_seeds"] == {names[0]: 7000, names[1]: 7000} and held_out["episodes"] == 2
+    assert held_out["interval"]["gain"]["n_episodes"] == 2 and "win_rate" in held_out["models"][names[0]]["gain"]
+
+
+def test_evaluate_kept_defaults_to_start_states_no_other_part_plays() -> None:
+    """Its own and held-out defaults are config/start_states.py's, which the config check keeps apart from the
+    pipeline's and the sweep's; a held-out set that meets the own one is refused before anything plays."""
+    defaults = {p.name: p.default for p in inspect.signature(cli_evaluate_kept).parameters.values()}
+    assert (defaults["eval_seed"], defaults["held_out_seed"]) == (KEPT_EVAL_SEED, KEPT_HELD_OUT_SEED)
+    with pytest.raises(StageError, match="choose held-out start states that are others"):
+        names = ["maze2d-large/seed0/phase1-rollouts", "maze2d-large/seed1/phase1-rollouts"]
+        evaluate_kept_seeds(REPO, names, 4, 3001, torch.device("cpu"), held_out_seed=3000)
 
 
 def test_evaluate_kept_refuses_an_unknown_model_in_one_line(monkeypatch: pytest.MonkeyPatch) -> None:

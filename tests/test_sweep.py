@@ -230,6 +230,21 @@ def test_trials_run_the_stages_dvc_yaml_declares(tmp_path: Path) -> None:
         plan_trial(tmp_path, trial, "unseen")
 
 
+def test_a_trial_plays_start_states_of_its_own_on_both_sets(tmp_path: Path) -> None:
+    """A trial's evaluation and held-out start states are the sweep's (``sweep.evaluate_seed``,
+    ``sweep.held_out_seed``), also where the swept task's entry sets its own, so no trial plays a state the pipeline
+    reports on."""
+    raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", tmp_path / "params.yaml").read_text())
+    raw.setdefault("task", {}).setdefault(TASK, {})["evaluate"] = {"seed": 1100, "held_out_seed": 7100}
+    base = params_from_dict(raw)
+    pipeline = base.resolve(TASK).evaluate
+    assert pipeline.held_out_episodes > 0 and (pipeline.seed, pipeline.held_out_seed) == (1100, 7100)
+    trial = params_from_dict(trial_raw(raw, {})).resolve(TASK).evaluate
+    assert (trial.seed, trial.held_out_seed) == (base.sweep.evaluate_seed, base.sweep.held_out_seed)
+    played = {trial.seed + s for s in base.seeds} | {trial.held_out_seed + s for s in base.seeds}
+    assert not played & ({pipeline.seed + s for s in base.seeds} | {pipeline.held_out_seed + s for s in base.seeds})
+
+
 def test_the_unseen_objectives_read_the_family_figure_of_the_unseen_metrics_file() -> None:
     """``unseen`` is the family's figure of its unseen-task file (Maze2D: 100 x coin both-rate, KUKA: the
     pick-and-place score), ``mix`` weighs it against the score; a task without an unseen task has none."""

@@ -163,24 +163,57 @@ def test_scores_and_gains_carry_their_interval_over_seeds_and_episodes(two_seeds
             np.subtract(ours["held_out"]["score_per_episode"], theirs["held_out"]["score_per_episode"])
         )
     expected = interval([control["seeds"][s]["gain_per_episode"] for s in ("0", "3")])
+    assert expected["over"] == "seeds"  # two seeds: the t-interval of their means, beside the one over episodes
     assert (control["gain_ci_low"], control["gain_ci_high"]) == (expected["ci_low"], expected["ci_high"])
+    assert (control["gain_episode_ci_low"], control["gain_episode_ci_high"]) == (
+        expected["episode_ci_low"],
+        expected["episode_ci_high"],
+    )
     assert control["gain_ci_low"] <= control["gain_mean"] <= control["gain_ci_high"]
     assert "gain_per_episode" not in control and "score_per_episode" not in phase1["held_out"]
     assert phase1["score_ci_low"] <= phase1["score_mean"] <= phase1["score_ci_high"]
-    assert 0.0 <= control["probability_of_improvement"] <= 1.0
+    wins = [np.mean(np.sign(control["seeds"][s]["gain_per_episode"]) / 2 + 0.5) for s in ("0", "3")]
+    assert control["win_rate"] == pytest.approx(np.mean(wins)) and "probability_of_improvement" not in control
     summary = build_summary(params, root)[TASK]["phase_1"]
     assert summary["gain_ci_high"] == control["gain_ci_high"] and "gain_ci_high" not in summary["control"]
     assert summary["held_out"]["gain_mean"] == control["held_out"]["gain_mean"]
-    assert "gain_mean" not in summary["control"]["held_out"] and "probability_of_improvement" not in summary["control"]
+    assert summary["held_out"]["win_rate"] == control["held_out"]["win_rate"]
+    assert "gain_mean" not in summary["control"]["held_out"] and "win_rate" not in summary["control"]
     row = next(line for line in gains_table({TASK: build_summary(params, root)[TASK]}) if "| 1 |" in line)
     assert f"[{control['gain_ci_low']:.1f}, {control['gain_ci_high']:.1f}]" in row
-    assert f"| {control['probability_of_improvement']:.2f} |" in row
+    assert f"[{control['score_ci_low']:.1f}, {control['score_ci_high']:.1f}]" in row  # the control's interval
+    assert f"| {control['win_rate']:.2f} |" in row and f"| {control['held_out']['win_rate']:.2f} |" in row
+    assert "one seed" not in row
 
 
-def test_a_seeds_episodes_become_an_interval_in_the_aggregate_even_alone() -> None:
+def test_a_seeds_episodes_become_an_interval_over_episodes_alone_never_one_over_seeds() -> None:
     merged = over_seeds({0: {"score_mean": 2.0, "score_stderr": 0.5, "score_per_episode": [1.0, 2.0, 3.0]}})
     assert "score_per_episode" not in merged and merged["seeds"]["0"]["score_per_episode"] == [1.0, 2.0, 3.0]
-    assert 1.0 <= merged["score_ci_low"] < 2.0 < merged["score_ci_high"] <= 3.0
+    assert 1.0 <= merged["score_episode_ci_low"] < 2.0 < merged["score_episode_ci_high"] <= 3.0
+    assert "score_ci_low" not in merged and "score_ci_high" not in merged
+
+
+def test_a_one_seed_interval_is_tabled_as_one_over_episodes() -> None:
+    """`adaptdiffuser gains` on a one-seed run: each interval reads "one seed: over episodes"; the control's
+    interval and the held-out win rate have their cells."""
+    rng = np.random.default_rng(0)
+    model, control = rng.normal(60.0, 10.0, size=40), rng.normal(58.0, 10.0, size=40)
+
+    def seed_entry(scores: np.ndarray, **more: object) -> dict:
+        return {"score_mean": float(scores.mean()), "score_stderr": standard_error(scores), "return_mean": 0.0,
+                "n_episodes": 40, "score_per_episode": list(scores), **more}  # fmt: skip
+
+    gain = {"gain_mean": float((model - control).mean()), "gain_stderr": 1.0, "win_rate": 0.55}
+    held_out = {"gain_mean": 1.5, "gain_per_episode": list(model - control), "win_rate": 0.6}
+    phase1 = over_seeds({0: seed_entry(model)})
+    phase1.update(gain, control=over_seeds({0: seed_entry(control)}), held_out=held_out)
+    phase1["gain_episode_ci_low"], phase1["gain_episode_ci_high"] = -1.0, 5.0
+    held_out["gain_episode_ci_low"], held_out["gain_episode_ci_high"] = -2.0, 6.0
+    row = gains_table({"maze": {"phase_1": phase1}})[2]
+    c = phase1["control"]
+    assert f"[{c['score_episode_ci_low']:.1f}, {c['score_episode_ci_high']:.1f}] (one seed: over episodes)" in row
+    assert "[-1.0, 5.0] (one seed: over episodes) | 0.55 | 1.5 [-2.0, 6.0] (one seed: over episodes) | 0.60 |" in row
+    assert row.count("one seed: over episodes") == 4 and "| 1 x 40 |" in row
 
 
 def test_summary_and_report_show_each_seed(two_seeds: tuple[Path, Params], tmp_path: Path) -> None:
@@ -285,8 +318,8 @@ def test_merged_summaries_keep_every_run_and_recipe_of_a_task() -> None:
         "hopper (hopper)": hopper["hopper"],
     }
     rows = gains_table(merged)[2:]
-    assert "| maze (plans) | 1 | 80.9 ± 0.1 | 81.1 ± 0.1 | -0.2 ± 0.1 |  |  | 3 x 50 |" in rows[1]
-    assert "| maze (rollouts) | 1 | 81.5 ± 0.1 | 81.1 ± 0.1 | 0.4 ± 0.1 |  |  | 3 x 50 |" in rows[3]
+    assert "| maze (plans) | 1 | 80.9 ± 0.1 | 81.1 ± 0.1 | -0.2 ± 0.1 |  |  |  | 3 x 50 |" in rows[1]
+    assert "| maze (rollouts) | 1 | 81.5 ± 0.1 | 81.1 ± 0.1 | 0.4 ± 0.1 |  |  |  | 3 x 50 |" in rows[3]
     # the evolved entry wins over a phase-0-only one of the same phase 0, whichever file comes first
     same_start = {"hopper": {"phase_0": phase(33.1)}}
     for order in ([("a", same_start), ("b", hopper)], [("b", hopper), ("a", same_start)]):

@@ -9,6 +9,7 @@ from typing import Annotated, Any, TypeVar
 import typer
 
 from adaptdiffuser.config import ConfigError, Params, apply_profile, load_params
+from adaptdiffuser.config.start_states import KEPT_EVAL_SEED, KEPT_HELD_OUT_SEED
 from adaptdiffuser.data.schema import SchemaError
 from adaptdiffuser.errors import StageError
 
@@ -449,12 +450,12 @@ def gains(
         list[Path] | None, typer.Argument(help="metrics/summary.json files (default: metrics/summary.json)")
     ] = None,
 ) -> None:
-    """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error, and the 95 %
-    interval of a bootstrap over training seeds and episodes), the probability of improvement and the gain on the
-    held-out start states as a Markdown table; then the same on D4RL's constants where the task gives them
-    (Maze2D), and the score on the unseen task (gold coin, pick-and-place), phase against control. A task whose
-    entries in several files differ beyond phase 0 (two recipes, two runs) is listed once per file, as
-    ``<task> (<file name>)``."""
+    """Print each phase's score, its equal-compute control and the gain over it (mean ± standard error and the 95 %
+    interval over training seeds; with one seed the interval over episodes, labelled "one seed: over episodes"),
+    the win rate, and the gain and win rate on the held-out start states as a Markdown table; then the same on
+    D4RL's constants where the task gives them (Maze2D), and the score on the unseen task (gold coin,
+    pick-and-place), phase against control. A task whose entries in several files differ beyond phase 0 (two
+    recipes, two runs) is listed once per file, as ``<task> (<file name>)``."""
     from adaptdiffuser.io import read_json
     from adaptdiffuser.stages.report import d4rl_table, gains_table, merge_summaries, unseen_table
 
@@ -559,8 +560,17 @@ def evaluate_kept(
     ],
     episodes: Annotated[int, typer.Option(min=1, help="episodes to play per model")] = 500,
     eval_seed: Annotated[
-        int, typer.Option(min=0, help="the seed of the start states (plus each training seed)")
-    ] = 5000,
+        int,
+        typer.Option(
+            min=0, help="the seed of the start states (plus each training seed); the default no other part plays"
+        ),
+    ] = KEPT_EVAL_SEED,
+    held_out_seed: Annotated[
+        int, typer.Option(min=0, help="the seed of the held-out start states (plus each training seed)")
+    ] = KEPT_HELD_OUT_SEED,
+    held_out_episodes: Annotated[
+        int | None, typer.Option(min=0, help="held-out episodes per model (default: --episodes; 0: none)")
+    ] = None,
     own_start_states: Annotated[
         bool, typer.Option("--own-start-states/--same-start-states", help="offset the seed by the training seed")
     ] = True,
@@ -568,34 +578,50 @@ def evaluate_kept(
     device: Device = "auto",
     progress: Progress = True,
 ) -> None:
-    """Score kept models (each with its equal-compute control on the same episodes: the paired gain) on start states
-    of your choice, each training seed on its own, under the params and reference scores of the run that made it;
-    with several models, the mean over them and its two-level bootstrap 95 % interval (seeds, then episodes)."""
+    """Score kept models (each with its equal-compute control on the same episodes: the paired gain and its win
+    rate) on start states of your own and on held-out ones, each training seed on its own, under the params and
+    reference scores of the run that made it; with several models, the mean over them and its 95 % interval over
+    seeds (a t-interval of the models' means), and with one, its interval over episodes, labelled so. The default
+    seeds give start states no other part plays (config/start_states.py)."""
+    from adaptdiffuser.intervals import describe
     from adaptdiffuser.io import write_json
     from adaptdiffuser.stages.common import resolve_device
     from adaptdiffuser.stages.kept_models import evaluate_kept_seeds
 
     out = _guarded(
         lambda: evaluate_kept_seeds(
-            Path.cwd(), names, episodes, eval_seed, resolve_device(device), own_start_states, progress
+            Path.cwd(),
+            names,
+            episodes,
+            eval_seed,
+            resolve_device(device),
+            own_start_states,
+            progress,
+            held_out_seed=held_out_seed,
+            held_out_episodes=held_out_episodes,
         )
     )
-    for name, run in out["models"].items():
-        parts = [
-            f"{role} {m['score_mean']:.1f} +- {m['score_stderr']:.1f}"
-            for role, m in run.items()
-            if role in ("model", "control")
-        ]
-        if "gain" in run:
-            parts.append(f"gain {run['gain']['gain_mean']:.1f} +- {run['gain']['gain_stderr']:.1f}")
-        typer.echo(f"{name} (start states of seed {out['eval_seeds'][name]}, {episodes} episodes): {', '.join(parts)}")
-    if len(names) > 1:
-        for what, m in out["interval"].items():
-            extra = f", probability of improvement {m['probability_of_improvement']:.2f}" if what == "gain" else ""
-            typer.echo(
-                f"{what} over {m['n_seeds']} models: {m['mean']:.1f}, 95 % interval [{m['ci_low']:.1f}, "
-                f"{m['ci_high']:.1f}]{extra}"
-            )
+    sets = [("own", episodes, out)]
+    if "held_out" in out:
+        sets.append(("held out", out["held_out"]["episodes"], out["held_out"]))
+    for label, n, played in sets:
+        for name, run in played["models"].items():
+            parts = [
+                f"{role} {m['score_mean']:.1f} +- {m['score_stderr']:.1f}"
+                for role, m in run.items()
+                if role in ("model", "control")
+            ]
+            if "gain" in run:
+                gain = run["gain"]
+                parts.append(
+                    f"gain {gain['gain_mean']:.1f} +- {gain['gain_stderr']:.1f}, win rate {gain['win_rate']:.2f}"
+                )
+            seed = played["eval_seeds"][name]
+            typer.echo(f"{name} ({label}: start states of seed {seed}, {n} episodes): {', '.join(parts)}")
+        for what, m in played["interval"].items():
+            extra = f", win rate {m['win_rate']:.2f}" if what == "gain" else ""
+            models = f"{m['n_seeds']} model" + ("s" if m["n_seeds"] != 1 else "")
+            typer.echo(f"{what} ({label}) over {models}: {describe(m)}{extra}")
     if into is not None:
         write_json(into, {"episodes": episodes, **out})
 

@@ -8,6 +8,7 @@ import numpy as np
 from tqdm import tqdm
 
 from adaptdiffuser.contract import Controller, EpisodeBatchResult, Simulator
+from adaptdiffuser.intervals import win_rate
 
 EnvFactory = Callable[[], Simulator]
 ResetFn = Callable[[Simulator, int], np.ndarray]
@@ -33,14 +34,20 @@ def standard_error(values: np.ndarray | list[float]) -> float:
 
 def paired_gain(scores: np.ndarray, control_scores: np.ndarray) -> dict[str, float | int]:
     """The gain of a model over its control evaluated on the same episodes (same seeds, same start states):
-    mean and standard error of the per-episode differences ``scores - control_scores``."""
+    mean and standard error of the per-episode differences ``scores - control_scores``, and the win rate (the share
+    of episodes the model scores above its control, ties half)."""
     scores, control_scores = np.asarray(scores, dtype=np.float64), np.asarray(control_scores, dtype=np.float64)
     if scores.shape != control_scores.shape or scores.ndim != 1:
         raise ValueError(
             f"paired scores need one value per episode on both sides: {scores.shape} vs {control_scores.shape}"
         )
     diff = scores - control_scores
-    return {"gain_mean": float(diff.mean()), "gain_stderr": standard_error(diff), "gain_n_episodes": len(diff)}
+    return {
+        "gain_mean": float(diff.mean()),
+        "gain_stderr": standard_error(diff),
+        "gain_n_episodes": len(diff),
+        "win_rate": win_rate(scores, control_scores),
+    }
 
 
 class RandomController(Controller):

@@ -8,9 +8,11 @@ mean; None where no seed measured it. With one seed the aggregate is that seed's
 errors are then over episodes: ``stderr_over`` says which).
 
 A seed's ``<name>_per_episode`` (the list of its episodes' values: scores, or paired gains over a control) stays in
-that seed's entry only; the aggregate holds in its place the 95 % confidence interval of ``<name>_mean`` as
-``<name>_ci_low`` and ``<name>_ci_high``: the two-level bootstrap of :mod:`adaptdiffuser.intervals` over the seeds
-and their episodes (over episodes alone with one seed)."""
+that seed's entry only; the aggregate holds in its place the 95 % intervals of ``<name>_mean``
+(:mod:`adaptdiffuser.intervals`): over training seeds as ``<name>_ci_low`` and ``<name>_ci_high`` (a Student-t
+interval over the seeds' means; two or more seeds only), and over episodes with the seeds held fixed as
+``<name>_episode_ci_low`` and ``<name>_episode_ci_high`` (always; with one seed the only interval, which readers
+label "one seed: over episodes")."""
 
 from __future__ import annotations
 
@@ -68,8 +70,9 @@ def _spread_over_seeds(merged: dict[str, Any], values: list[Mapping[str, Any]]) 
 
 
 def _intervals_in_place(merged: dict[str, Any], values: list[Mapping[str, Any]]) -> None:
-    """Replace, in place and at every depth, each ``<name>_per_episode`` that every seed holds by the interval of
-    its mean over seeds and episodes (``<name>_ci_low``, ``<name>_ci_high``)."""
+    """Replace, in place and at every depth, each ``<name>_per_episode`` that every seed holds by the intervals of
+    its mean: over seeds (``<name>_ci_low``, ``<name>_ci_high``; two or more seeds) and over episodes
+    (``<name>_episode_ci_low``, ``<name>_episode_ci_high``)."""
     for key in list(merged):
         if isinstance(merged[key], dict):
             _intervals_in_place(merged[key], [v[key] for v in values])
@@ -78,7 +81,10 @@ def _intervals_in_place(merged: dict[str, Any], values: list[Mapping[str, Any]])
         if all(isinstance(v.get(key), list) and v[key] for v in values):
             name = key.removesuffix(PER_EPISODE)
             bounds = interval([v[key] for v in values])
-            merged[f"{name}_ci_low"], merged[f"{name}_ci_high"] = bounds["ci_low"], bounds["ci_high"]
+            if bounds["over"] == "seeds":
+                merged[f"{name}_ci_low"], merged[f"{name}_ci_high"] = bounds["ci_low"], bounds["ci_high"]
+            merged[f"{name}_episode_ci_low"] = bounds["episode_ci_low"]
+            merged[f"{name}_episode_ci_high"] = bounds["episode_ci_high"]
 
 
 def _has_stderr(metrics: Mapping[str, Any]) -> bool:
@@ -87,7 +93,7 @@ def _has_stderr(metrics: Mapping[str, Any]) -> bool:
 
 def over_seeds(per_seed: Mapping[int, Mapping[str, Any]]) -> dict[str, Any]:
     """One metrics dict for several training seeds: every number averaged over seeds, standard errors taken over
-    seeds (with two or more), each per-episode list replaced by its confidence interval, ``n_seeds`` and each seed's
+    seeds (with two or more), each per-episode list replaced by its confidence intervals, ``n_seeds`` and each seed's
     metrics under ``seeds``."""
     if not per_seed:
         raise ValueError("no training seed's metrics to aggregate")

@@ -4,7 +4,6 @@ phase chain and the checks that span sections."""
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
 from dataclasses import field
 from typing import Annotated, Any
 
@@ -24,6 +23,7 @@ from adaptdiffuser.config.sections import (
     PlannerParams,
     PretrainParams,
 )
+from adaptdiffuser.config.start_states import check_start_states
 from adaptdiffuser.config.sweep_settings import SweepParams
 from adaptdiffuser.config.tasks import GENERIC_SECTIONS, TaskParams, build_task
 
@@ -159,15 +159,9 @@ class Params:
         return chain[::-1]
 
 
-def start_seeds(base: int, seeds: Sequence[int]) -> set[int]:
-    """The evaluation seeds of a set of start states (``evaluate.seed``, ...) over the training seeds: seed s plays
-    ``base + s``."""
-    return {base + seed for seed in seeds}
-
-
 def check_sweep(p: Params) -> None:
-    """The swept task runs evolution phases, an unseen objective needs a task of ``unseen_tasks``, and trials never
-    evaluate on the pipeline's evaluation episodes."""
+    """The swept task runs evolution phases, and an unseen objective needs a task of ``unseen_tasks`` (that trials
+    play start states of their own: :func:`~adaptdiffuser.config.start_states.check_start_states`)."""
     s = p.sweep
     task = s.task if s.task is not None else p.evolve
     if task is None:
@@ -180,14 +174,6 @@ def check_sweep(p: Params) -> None:
         raise ConfigError(
             f"sweep.objective: {s.objective!r} needs a task with an unseen task and {task} is not in unseen_tasks; "
             "use gain or score"
-        )
-    ev = p.task[task].evaluate
-    reported = start_seeds(ev.seed, p.seeds) | start_seeds(ev.held_out_seed, p.seeds)
-    if s.space and start_seeds(s.evaluate_seed, p.seeds) & reported:
-        raise ConfigError(
-            f"sweep.evaluate_seed: {s.evaluate_seed} plus a training seed is an evaluation seed of {task} "
-            "(evaluate.seed, evaluate.held_out_seed, each plus a training seed); trials must not be tuned on the "
-            "episodes the results are reported on"
         )
 
 
@@ -212,6 +198,7 @@ def check_cross_fields(p: Params) -> None:
     check_task_lists(p)
     check_chain(p.phases)
     check_sweep(p)
+    check_start_states(p)
     for name in p.tasks:  # entries not listed in `tasks` are type-checked only (another profile's tasks)
         check_task(p.task[name], p)
     if p.phases and p.evolve is not None:
@@ -234,12 +221,6 @@ def check_task(task: TaskParams, params: Params) -> None:
     """The checks that span a task's sections: the U-Net's horizon, sampler steps, and the family's own."""
     where = f"task.{task.name}"
     check_shapes(task, f"{where}.")
-    ev = task.evaluate
-    if ev.held_out_episodes and start_seeds(ev.seed, params.seeds) & start_seeds(ev.held_out_seed, params.seeds):
-        raise ConfigError(
-            f"{where}.evaluate.held_out_seed: {ev.held_out_seed} plus a training seed is also evaluate.seed "
-            f"({ev.seed}) plus one; the held-out start states must be others"
-        )
     check = getattr(task.settings, "check", None)
     if check is not None:
         check(task, params)

@@ -104,8 +104,9 @@ class EvaluateParams:
     #: training seed s plays the start states of seed + s: each seed its own episodes, shared by its phases and
     #: controls (paired)
     seed: Seed = 1000
-    #: the held-out start states (held_out_seed + s), reported beside the main ones and never used to choose
-    #: anything (sweeps evaluate on sweep.evaluate_seed); 0 held-out episodes: none
+    #: the held-out start states (held_out_seed + s): fresh draws from the task's start distribution (not new
+    #: situations), reported beside the main ones and never used to choose anything (sweep trials play
+    #: sweep.evaluate_seed and sweep.held_out_seed instead); 0 held-out episodes: none
     held_out_seed: Seed = 7000
     held_out_episodes: NonNegativeInt = 50
     #: episodes planned together in one batch

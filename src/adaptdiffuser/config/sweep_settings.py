@@ -89,7 +89,10 @@ class SweepParams:
     seed: Seed = 0
     #: gain (final phase - its control) | score | unseen (the unseen task's figure, 0-100) | mix of score and unseen
     objective: Annotated[Str, one_of(*SWEEP_OBJECTIVES)] = "gain"
-    evaluate_seed: Seed = 5000  # the trials' evaluation episodes: never the pipeline's (evaluate.seed)
+    #: the trials' start states (plus training seed): their evaluation set and their held-out one, never the
+    #: pipeline's (evaluate.seed, evaluate.held_out_seed) nor evaluate-kept's (config/start_states.py)
+    evaluate_seed: Seed = 5000
+    held_out_seed: Seed = 6000
     #: mix = (1 - w) x score + w x unseen
     unseen_weight: Annotated[Float, UNIT] = 0.5
     #: None = journal file sweeps/<study>.journal; or postgresql://user@host/db

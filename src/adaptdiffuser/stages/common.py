@@ -7,8 +7,16 @@ from pathlib import Path
 
 import torch
 
-#: a phase's gain over its control: mean ± standard error, 95 % interval, probability of improvement
-GAIN_KEYS = ("gain_mean", "gain_stderr", "gain_ci_low", "gain_ci_high", "probability_of_improvement")
+#: a phase's gain over its control: mean ± standard error, 95 % intervals (over seeds; over episodes), win rate
+GAIN_KEYS = (
+    "gain_mean",
+    "gain_stderr",
+    "gain_ci_low",
+    "gain_ci_high",
+    "gain_episode_ci_low",
+    "gain_episode_ci_high",
+    "win_rate",
+)
 
 
 def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str, phase: int, root: Path) -> dict:

@@ -110,8 +110,8 @@ def evaluate_seed(
     seeds takes its confidence interval).
 
     With ``control``, evaluate phase k's control model on the same episodes instead, and add on each set the gain of
-    phase k over it, paired over episodes (``gain_mean``, ``gain_stderr``, ``gain_per_episode`` and the probability
-    of improvement; phase k's evaluation must exist)."""
+    phase k over it, paired over episodes (``gain_mean``, ``gain_stderr``, ``gain_per_episode`` and ``win_rate``;
+    phase k's evaluation must exist)."""
     task = params.resolve(task_name)
     family = get_family(task.family)
     model = model_dir(task.name, phase, seed, control)
@@ -183,11 +183,10 @@ def _gain_over(
     evolved_table: Path, episodes: list[int], scores: np.ndarray, phase: int
 ) -> tuple[dict[str, float | int], list[float]]:
     """The gain of phase k (its table of the same start states) over its control's ``scores``, paired over
-    episodes: mean, standard error and the probability of improvement (ties count half); and each episode's."""
+    episodes: mean, standard error and the win rate (the share of episodes phase k scores above its control, ties
+    half); and each episode's."""
     evolved = pq.read_table(evolved_table, columns=["episode", "score"]).to_pydict()
     if evolved["episode"] != list(episodes):
         raise StageError(f"{evolved_table}: its episodes differ from the control's; rerun evaluate@phase{phase}")
     diff = np.asarray(evolved["score"]) - scores
-    gain = paired_gain(np.asarray(evolved["score"]), scores)
-    improvement = float(np.mean((diff > 0) + 0.5 * (diff == 0)))
-    return gain | {"probability_of_improvement": improvement}, [float(x) for x in diff]
+    return paired_gain(np.asarray(evolved["score"]), scores), [float(x) for x in diff]

@@ -102,6 +102,19 @@ def evaluate_kept(
     return out
 
 
+def _one_set(
+    root: Path, names: list[str], episodes: int, seeds: dict[str, int], device: torch.device, progress: bool
+) -> dict[str, dict]:
+    """Every model of ``names`` (and its control) on its start states ``seeds[name]``, and the intervals over them."""
+    runs = {name: evaluate_kept(root, name, episodes, seeds[name], device, progress) for name in names}
+    scores = [runs[name]["episode_scores"]["model"] for name in names]
+    summary: dict[str, dict] = {"score": interval(scores)}
+    if all("control" in runs[name]["episode_scores"] for name in names):
+        controls = [runs[name]["episode_scores"]["control"] for name in names]
+        summary |= {"control": interval(controls), "gain": paired_interval(scores, controls)}
+    return {"models": runs, "eval_seeds": seeds, "interval": summary}
+
+
 def evaluate_kept_seeds(
     root: Path,
     names: list[str],
@@ -110,26 +123,43 @@ def evaluate_kept_seeds(
     device: torch.device,
     own_start_states: bool = True,
     progress: bool = False,
+    held_out_seed: int | None = None,
+    held_out_episodes: int | None = None,
 ) -> dict[str, dict]:
     """:func:`evaluate_kept` for several kept models (one per training seed, say), each on start states of its own:
     those of ``eval_seed + its training seed`` (``own_start_states``; else all on ``eval_seed``'s). Returns
     ``{"models": {name: its evaluation}, "eval_seeds": {name: seed}}`` and, over the models, ``"interval"``: the mean
-    and two-level bootstrap 95 % interval (:mod:`adaptdiffuser.intervals`) of the score, and where every model has
-    a control, of the control's score and of the paired gain with its probability of improvement."""
+    and 95 % intervals (:func:`adaptdiffuser.intervals.interval`: over seeds, a t-interval of the models' means; with
+    one model over episodes) of the score, and where every model has a control, of the control's score and of the
+    paired gain with its win rate. With ``held_out_seed``, the same again on a held-out set (``held_out_seed`` +
+    training seed, ``held_out_episodes`` episodes, default ``episodes``; 0: none) under ``"held_out"``; the two sets
+    must not share a start state."""
     manifest = load_manifest(root)
     if len(set(names)) != len(names):
         raise StageError(f"a kept model named twice among {names}: each counts once in the interval")
     missing = [name for name in names if name not in manifest.models]
     if missing:
         raise StageError(f"{missing[0]}: no such kept model (listed: {', '.join(sorted(manifest.models))})")
-    seeds = {name: eval_seed + (manifest.models[name].training_seed if own_start_states else 0) for name in names}
-    runs = {name: evaluate_kept(root, name, episodes, seeds[name], device, progress) for name in names}
-    scores = [runs[name]["episode_scores"]["model"] for name in names]
-    summary: dict[str, dict] = {"score": interval(scores)}
-    if all("control" in runs[name]["episode_scores"] for name in names):
-        controls = [runs[name]["episode_scores"]["control"] for name in names]
-        summary |= {"control": interval(controls), "gain": paired_interval(scores, controls)}
-    return {"models": runs, "eval_seeds": seeds, "interval": summary}
+
+    def seeds_of(base: int) -> dict[str, int]:
+        return {name: base + (manifest.models[name].training_seed if own_start_states else 0) for name in names}
+
+    seeds = seeds_of(eval_seed)
+    plays_held_out = held_out_seed is not None and held_out_episodes != 0
+    if held_out_seed is not None and plays_held_out:
+        shared = set(seeds.values()) & set(seeds_of(held_out_seed).values())
+        if shared:
+            raise StageError(
+                f"held-out seed {held_out_seed} and evaluation seed {eval_seed} both give start states of seed "
+                f"{min(shared)} to these models; choose held-out start states that are others"
+            )
+    out = _one_set(root, names, episodes, seeds, device, progress)
+    if held_out_seed is not None and plays_held_out:
+        held_out = held_out_episodes if held_out_episodes is not None else episodes
+        out["held_out"] = {"episodes": held_out} | _one_set(
+            root, names, held_out, seeds_of(held_out_seed), device, progress
+        )
+    return out
 
 
 def _play(

@@ -8,11 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
+from adaptdiffuser.intervals import ONE_SEED
 from adaptdiffuser.io import atomic_path, read_json
 from adaptdiffuser.layout import HELD_OUT, SUMMARY, report_plot_path, score_table_path, unseen_plot_path
 from adaptdiffuser.plots import save_panels_by_phase, save_score_by_phase
 from adaptdiffuser.stages.common import GAIN_KEYS, phase_entries, unseen_scores
 
+#: ``*_ci_*``: the 95 % interval over training seeds (empty with one seed); ``*_episode_ci_*``: over episodes, the
+#: seeds held fixed (the only one a single seed has); ``win_rate``: the share of episodes a phase beats its control
 TABLE_COLUMNS = (
     "phase",
     "score_mean",
@@ -21,20 +24,33 @@ TABLE_COLUMNS = (
     "score_ci_high",
     "control_score_mean",
     "control_score_stderr",
+    "control_score_ci_low",
+    "control_score_ci_high",
     "gain_mean",
     "gain_stderr",
     "gain_ci_low",
     "gain_ci_high",
-    "probability_of_improvement",
+    "win_rate",
     "held_out_score_mean",
     "held_out_gain_mean",
     "held_out_gain_ci_low",
     "held_out_gain_ci_high",
+    "held_out_win_rate",
+    "score_episode_ci_low",
+    "score_episode_ci_high",
+    "control_score_episode_ci_low",
+    "control_score_episode_ci_high",
+    "gain_episode_ci_low",
+    "gain_episode_ci_high",
+    "held_out_gain_episode_ci_low",
+    "held_out_gain_episode_ci_high",
     "return_mean",
     "n_episodes",
     "n_seeds",
     "kept",
 )
+#: the interval keys of a score or gain: over seeds, then over episodes
+_BOUNDS = ("ci_low", "ci_high", "episode_ci_low", "episode_ci_high")
 
 
 def score_table(task_summary: dict) -> list[dict]:
@@ -47,13 +63,15 @@ def score_table(task_summary: dict) -> list[dict]:
             {
                 "phase": phase,
                 **{k: entry[k] for k in ("score_mean", "score_stderr", "return_mean", "n_episodes")},
-                **{k: entry.get(k) for k in ("score_ci_low", "score_ci_high")},
+                **{f"score_{k}": entry.get(f"score_{k}") for k in _BOUNDS},
                 "n_seeds": entry.get("n_seeds", 1),
                 "control_score_mean": control.get("score_mean"),
                 "control_score_stderr": control.get("score_stderr"),
+                **{f"control_score_{k}": control.get(f"score_{k}") for k in _BOUNDS},
                 **{k: entry.get(k) for k in GAIN_KEYS},
                 "held_out_score_mean": held_out.get("score_mean"),
-                **{f"held_out_{k}": held_out.get(k) for k in ("gain_mean", "gain_ci_low", "gain_ci_high")},
+                **{f"held_out_gain_{k}": held_out.get(f"gain_{k}") for k in ("mean", *_BOUNDS)},
+                "held_out_win_rate": held_out.get("win_rate"),
                 "kept": entry.get("discriminator", {}).get("kept", 0),
             }
         )
@@ -89,12 +107,25 @@ def _pm(mean: float | None, stderr: float | None) -> str:
     return "" if mean is None else f"{mean:.1f} ± {stderr or 0.0:.1f}"
 
 
+def _bounds(row: dict, name: str) -> str:
+    """`` [low, high]`` of ``<name>``'s 95 % interval over seeds in ``row``; without one (one seed), its interval
+    over episodes labelled ``(one seed: over episodes)``; empty without either."""
+    for over, label in (("ci", ""), ("episode_ci", f" ({ONE_SEED})")):
+        low, high = row.get(f"{name}_{over}_low"), row.get(f"{name}_{over}_high")
+        if low is not None and high is not None:
+            return f" [{low:.1f}, {high:.1f}]{label}"
+    return ""
+
+
 def _with_interval(row: dict, name: str) -> str:
-    """``mean ± stderr [low, high]`` of ``<name>_*`` in ``row``: the 95 % interval beside the standard error, where
-    the row holds one."""
-    text = _pm(row[f"{name}_mean"], row[f"{name}_stderr"])
-    low, high = row.get(f"{name}_ci_low"), row.get(f"{name}_ci_high")
-    return text if low is None or high is None or not text else f"{text} [{low:.1f}, {high:.1f}]"
+    """``mean ± stderr [low, high]`` of ``<name>_*`` in ``row``: the 95 % interval (:func:`_bounds`) beside the
+    standard error, where the row holds one."""
+    text = _pm(row[f"{name}_mean"], row.get(f"{name}_stderr"))
+    return text + _bounds(row, name) if text else text
+
+
+def _rate(value: float | None) -> str:
+    return "" if value is None else f"{value:.2f}"
 
 
 def _only_phase_0_of(entry: dict, other: dict) -> bool:
@@ -128,26 +159,24 @@ def merge_summaries(summaries: list[tuple[str, dict]]) -> dict:
 def gains_table(summary: dict) -> list[str]:
     """A Markdown table of every task's phases in ``metrics/summary.json``: score, control score and the gain over
     the control, each mean ± standard error (over training seeds, or over episodes with one seed) and its 95 %
-    interval (a bootstrap over seeds and episodes) where the summary holds one; the probability that the phase
-    beats its control on a start state; the gain on the held-out start states."""
+    interval where the summary holds one (over seeds: a t-interval of the seeds' means; with one seed over episodes,
+    labelled so); the win rate (the share of start states on which the phase beats its control); the gain and win
+    rate on the held-out start states."""
     lines = [
-        "| task | phase | score [95% CI] | control (expert only, same steps) | gain over control [95% CI] "
-        "| P(improvement) | held-out gain [95% CI] | seeds x episodes | kept |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| task | phase | score [95% CI] | control (expert only, same steps) [95% CI] | gain over control [95% CI] "
+        "| win rate | held-out gain [95% CI] | held-out win rate | seeds x episodes | kept |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for task, task_summary in summary.items():
         for row in score_table(task_summary):
-            improvement = row["probability_of_improvement"]
             held_out = row["held_out_gain_mean"]
-            held_out_gain = "" if held_out is None else f"{held_out:.1f}"
-            if held_out is not None and row["held_out_gain_ci_low"] is not None:
-                held_out_gain += f" [{row['held_out_gain_ci_low']:.1f}, {row['held_out_gain_ci_high']:.1f}]"
+            held_out_gain = "" if held_out is None else f"{held_out:.1f}" + _bounds(row, "held_out_gain")
             lines.append(
                 f"| {task} | {row['phase']} "
                 f"| {_with_interval(row, 'score')} "
-                f"| {_pm(row['control_score_mean'], row['control_score_stderr'])} "
+                f"| {_with_interval(row, 'control_score')} "
                 f"| {_with_interval(row, 'gain')} "
-                f"| {'' if improvement is None else f'{improvement:.2f}'} | {held_out_gain} "
+                f"| {_rate(row['win_rate'])} | {held_out_gain} | {_rate(row['held_out_win_rate'])} "
                 f"| {row['n_seeds']} x {row['n_episodes']} | {row['kept']:g} |"
             )
     return lines

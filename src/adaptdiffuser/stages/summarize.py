@@ -109,7 +109,8 @@ def build_summary(params: Params, root: Path) -> dict:
     own score where the reference stage measured it.
 
     Means and standard errors are over training seeds (over episodes with one seed: ``stderr_over``), 95 % intervals
-    (``*_ci_low``, ``*_ci_high``) over seeds and their episodes; the held-out start states' under ``held_out``; the
+    over seeds (``*_ci_low``, ``*_ci_high``; two or more seeds) and over episodes (``*_episode_ci_low``,
+    ``*_episode_ci_high``; :mod:`adaptdiffuser.seed_metrics`); the held-out start states' under ``held_out``; the
     discriminator counts are means over seeds; ``per_seed`` has each seed's score and gain."""
     summary: dict[str, dict] = {}
     for task in params.tasks:

@@ -6,8 +6,8 @@ needs them) for every training seed, in its own folder ``sweeps/<study>/trial_<n
 ``dvc.yaml`` (see :mod:`adaptdiffuser.tooling.sweep_trials`), reusing the project's cached data, reference scores and
 phase-0 models (a search key that would change those is refused), and reports its objective after every phase so
 hopeless trials are pruned. The default objective is the final phase's gain over its control (the number the
-results lead with), not its raw score. Trials evaluate on their own episodes (``sweep.evaluate_seed``), never on
-the pipeline's.
+results lead with), not its raw score. Trials evaluate on start states of their own (``sweep.evaluate_seed``, and
+``sweep.held_out_seed`` for the held-out set), never on the pipeline's evaluation or held-out ones.
 
 Workers are processes sharing one Optuna storage: a journal file by default (``sweeps/<study>.journal``), or any
 RDB URL such as ``postgresql://user@host/db`` for workers on several machines (its password from ``PGPASSWORD``
@@ -308,7 +308,8 @@ def start_parent_run(
     tags = {"stage": "sweep", "sweep": sweep.study, "storage": storage or "journal file"}
     run = client.create_run(experiment_id, run_name=f"sweep-{sweep.study}", tags=loggable(tags, 5000))
     params = {"trials": trials, "workers": workers, "objective": sweep.objective, "task": task}
-    params |= {"evaluate_seed": sweep.evaluate_seed} | {f"space.{dim.key}": _describe(dim) for dim in sweep.space}
+    params |= {"evaluate_seed": sweep.evaluate_seed, "held_out_seed": sweep.held_out_seed}
+    params |= {f"space.{dim.key}": _describe(dim) for dim in sweep.space}
     for key, value in loggable(params).items():
         client.log_param(run.info.run_id, key, value)
     return run.info.run_id

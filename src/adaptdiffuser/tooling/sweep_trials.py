@@ -77,17 +77,21 @@ def family_unseen_objective(params: Params) -> Callable[[dict], float] | None:
 
 def trial_raw(raw: dict[str, Any], values: dict[str, Any]) -> dict[str, Any]:
     """The project's params (as loaded from ``params.yaml``) with a trial's values set, evolving the swept task and
-    evaluating on the sweep's own episodes (``sweep.evaluate_seed``, also where the task overrides ``evaluate``);
-    the ``sweep`` section itself is left out. Validated; returned as a plain mapping for the trial's params.yaml."""
+    evaluating on the sweep's own start states, both sets (``sweep.evaluate_seed`` for ``evaluate.seed`` and
+    ``sweep.held_out_seed`` for ``evaluate.held_out_seed``, also where the task overrides them), never the
+    pipeline's; the ``sweep`` section itself is left out. Validated; returned as a plain mapping for the trial's
+    params.yaml."""
     base = params_from_dict(raw)
     task = swept_task(base)
     out = {key: value for key, value in raw.items() if key != "sweep"}
     for key, value in values.items():
         out = set_dotted(out, key, value)
     out = set_dotted(out, "evolve", task)
-    out = set_dotted(out, "evaluate.seed", base.sweep.evaluate_seed)
-    if "seed" in (out.get("task", {}).get(task, {}) or {}).get("evaluate", {}):
-        out = set_dotted(out, f"task.{task}.evaluate.seed", base.sweep.evaluate_seed)
+    own = {"seed": base.sweep.evaluate_seed, "held_out_seed": base.sweep.held_out_seed}
+    for key, seed in own.items():
+        out = set_dotted(out, f"evaluate.{key}", seed)
+        if key in ((out.get("task", {}).get(task, {}) or {}).get("evaluate", {}) or {}):
+            out = set_dotted(out, f"task.{task}.evaluate.{key}", seed)
     params_from_dict(out)
     return out
 
