@@ -159,3 +159,22 @@ def test_dvc_imports_instead_of_pretraining_and_reruns_when_the_folder_changes(t
     (folder / "seed1" / "train_loss.png").write_bytes(b"another picture")
     status = run(["dvc", "status", name], root).stdout
     assert "changed deps" in status and str(folder) in status
+
+
+def test_pretrained_and_pretrain_tasks_are_checked(tmp_path: Path) -> None:
+    """Every task's phase 0 has exactly one source: pretrain_tasks or pretrained (computed when left out)."""
+    from adaptdiffuser.config import ConfigError
+
+    maze_params(tmp_path)
+    raw = _raw(tmp_path)
+    del raw["pretrain_tasks"]
+    assert params_from_dict(raw | {"pretrained": {TASK: "/x"}}).pretrain_tasks == ()
+    bad = [
+        ({"pretrained": {TASK: "/x"}}, "pretrain_tasks: must list the tasks of 'tasks' that have no pretrained"),
+        ({"pretrained": {"hopper-medium": "/x"}}, "pretrained.hopper-medium: 'hopper-medium' is not one of tasks"),
+        ({"pretrained": {TASK: " "}, "pretrain_tasks": []}, f"pretrained.{TASK}: is empty"),
+        ({"pretrain_tasks": []}, "pretrain_tasks: must list the tasks of 'tasks' that have no pretrained folder"),
+    ]
+    for change, message in bad:
+        with pytest.raises(ConfigError, match=f"^{message}"):
+            params_from_dict(_raw(tmp_path) | change)
