@@ -699,6 +699,7 @@ def test_describe_lists_the_task_and_the_stages_dvc_runs() -> None:
     items = {"${tasks}": params.tasks, "${unseen_tasks}": params.unseen_tasks, "${phases}": params.phase_names}
     items |= {"${task}": list(params.task)}
     items |= {"${collect_tasks}": params.collect_tasks, "${imports}": list(params.imports)}
+    items |= {"${pretrain_tasks}": params.pretrain_tasks, "${pretrained}": list(params.pretrained)}
     expanded = {f"{name}@{k}" for name, spec in dvc.items() if "foreach" in spec for k in items[spec["foreach"]]} | {
         name for name, spec in dvc.items() if "foreach" not in spec
     }
@@ -879,6 +880,7 @@ def test_task_override_is_merged_over_the_top_level_section(tmp_path: Path) -> N
         "tasks": [UMAZE, "maze2d-medium"],
         "unseen_tasks": [UMAZE, "maze2d-medium"],
         "collect_tasks": [UMAZE, "maze2d-medium"],
+        "pretrain_tasks": [UMAZE, "maze2d-medium"],
         "task": {"maze2d-medium": medium | {"model": {"dim": 32}, "planner": {"sampler": "ddpm"}}},
     }
     params = load_params(write_params(tmp_path, overlay))
@@ -905,7 +907,7 @@ def test_task_override_is_merged_over_the_top_level_section(tmp_path: Path) -> N
 def test_paper_rule_is_checked_on_the_evolved_task_only(tmp_path: Path) -> None:
     custom = {"family": "maze2d", "env": {"layout": ["######", "#..#G#", "#....#", "#.##.#", "######"]}}
     overlay = {"tasks": [UMAZE, "maze2d-custom"], "unseen_tasks": [UMAZE, "maze2d-custom"]}
-    overlay["collect_tasks"] = overlay["tasks"]
+    overlay["collect_tasks"] = overlay["pretrain_tasks"] = overlay["tasks"]
     overlay["task"] = {"maze2d-custom": custom}
     params = load_params(write_params(tmp_path, overlay))  # evolve: maze2d-umaze, rule paper
     assert (

@@ -130,7 +130,12 @@ def test_a_phase_that_keeps_nothing_is_a_result_and_equals_its_control(
     shutil.copytree(root, copy)  # every stage below rewrites its outputs there
     strict = _with_phase1(params, max_error=1e-9)
     strict = dataclasses.replace(
-        strict, tasks=(TASK,), unseen_tasks=(TASK,), collect_tasks=(TASK,), phases=(strict.phase(1),)
+        strict,
+        tasks=(TASK,),
+        unseen_tasks=(TASK,),
+        collect_tasks=(TASK,),
+        pretrain_tasks=(TASK,),
+        phases=(strict.phase(1),),
     )
     report = run_discriminate(strict, TASK, copy, 1, progress=False)
     assert report["kept"] == 0 and report["rejected_tracking"] == report["generated"] == 16

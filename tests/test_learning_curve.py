@@ -24,7 +24,7 @@ MAZE = "maze2d-umaze"
 
 def _maze_only(path: Path) -> None:
     raw = yaml.safe_load(path.read_text())
-    raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={})
+    raw.update(tasks=[MAZE], collect_tasks=[MAZE], pretrain_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={})
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
 

@@ -153,7 +153,15 @@ def _phase0_of_one_task(path: Path) -> None:
     """Phase 0 of the maze task alone over two training seeds, with a pretraining long enough to be stopped between
     its checkpoints, ``EVERY`` steps apart."""
     raw = yaml.safe_load(path.read_text())
-    raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={}, seeds=[0, 1])
+    raw.update(
+        tasks=[MAZE],
+        collect_tasks=[MAZE],
+        pretrain_tasks=[MAZE],
+        unseen_tasks=[MAZE],
+        evolve=None,
+        phases={},
+        seeds=[0, 1],
+    )
     raw["pretrain"] |= {"steps": STEPS, "checkpoint_every": EVERY}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
@@ -219,7 +227,14 @@ def test_a_stopped_run_continues_on_another_machine_and_a_killed_one_where_it_is
 def _maze_phases_only(path: Path) -> None:
     """The smoke profile's first evolution phase on the maze task alone (with its control), in episodes of two plans."""
     raw = yaml.safe_load(path.read_text())
-    raw.update(tasks=[MAZE], collect_tasks=[MAZE], unseen_tasks=[MAZE], evolve=MAZE, phases={"phase1": {"previous": 0}})
+    raw.update(
+        tasks=[MAZE],
+        collect_tasks=[MAZE],
+        pretrain_tasks=[MAZE],
+        unseen_tasks=[MAZE],
+        evolve=MAZE,
+        phases={"phase1": {"previous": 0}},
+    )
     raw["task"][MAZE]["env"] = {"episode_steps": 2 * raw["diffusion"]["horizon"]}
     raw["evolution"]["generate"] |= {"replan_every": raw["diffusion"]["horizon"]}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
@@ -280,7 +295,7 @@ def test_science_locomotion_evolves_each_task_on_one_phase0(tmp_path: Path) -> N
 
     def without_halfcheetah(path: Path) -> None:
         raw = yaml.safe_load(path.read_text())
-        for key in ("tasks", "collect_tasks"):
+        for key in ("tasks", "collect_tasks", "pretrain_tasks"):
             raw[key] = [task for task in raw[key] if task != "halfcheetah-medium"]
         path.write_text(yaml.safe_dump(raw, sort_keys=False))
 

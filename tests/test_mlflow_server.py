@@ -94,8 +94,9 @@ def test_stages_log_to_a_tracking_server(server: str, tmp_path: Path, monkeypatc
         monkeypatch.delenv(name, raising=False)
     raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", tmp_path / "params.yaml").read_text())
     raw.update(tasks=[TASK], unseen_tasks=[TASK], evolve=TASK)
-    if "collect_tasks" in raw:
-        raw["collect_tasks"] = [TASK]
+    for key in ("collect_tasks", "pretrain_tasks"):
+        if key in raw:
+            raw[key] = [TASK]
     params = params_from_dict(raw)
     try:
         run_collect(params, TASK, tmp_path, progress=False)

@@ -197,7 +197,9 @@ def test_a_seed_in_two_runs_files_is_refused(tasks: Path, tmp_path: Path) -> Non
 def test_seeds_queued_as_dvc_experiments_run_on_two_workers_and_pool(tmp_path: Path) -> None:
     def phase0_of_the_maze(path: Path) -> None:
         raw = yaml.safe_load(path.read_text())
-        raw.update(tasks=[TASK], collect_tasks=[TASK], unseen_tasks=[TASK], evolve=None, phases={})
+        raw.update(
+            tasks=[TASK], collect_tasks=[TASK], pretrain_tasks=[TASK], unseen_tasks=[TASK], evolve=None, phases={}
+        )
         path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
     (tmp_path / "project").mkdir()

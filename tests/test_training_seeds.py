@@ -59,7 +59,7 @@ TASK = "maze2d-umaze"
 
 def _params(root: Path, seeds: list[int]) -> Params:
     raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", root / "params.yaml").read_text())
-    raw.update(tasks=[TASK], collect_tasks=[TASK], unseen_tasks=[TASK], evolve=TASK, seeds=seeds)
+    raw.update(tasks=[TASK], collect_tasks=[TASK], pretrain_tasks=[TASK], unseen_tasks=[TASK], evolve=TASK, seeds=seeds)
     raw["phases"] = {"phase1": {"previous": 0}}
     return params_from_dict(raw)
 

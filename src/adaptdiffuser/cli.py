@@ -153,6 +153,23 @@ def pretrain(
     typer.echo(f"wrote {out}")
 
 
+@app.command("import-model")
+def import_model(
+    params: ParamsPath = Path("params.yaml"),
+    task: TaskOption = None,
+    device: Device = "auto",
+    progress: Progress = True,
+) -> None:
+    """Import a task's trained phase-0 models from pretrained.<task> (a folder of seed<s>/ model folders), checked
+    against the task's model and data, into models/<task>/phase0/seed<s>, instead of the pretrain stage."""
+    from adaptdiffuser.stages.common import resolve_device
+    from adaptdiffuser.stages.import_model import run_import_model
+
+    p = _params(params)
+    out = _guarded(lambda: run_import_model(p, _task(p, task), Path.cwd(), resolve_device(device), progress=progress))
+    typer.echo(f"wrote {out}")
+
+
 @app.command()
 def evaluate(
     params: ParamsPath = Path("params.yaml"),

@@ -25,6 +25,8 @@ KEY_ORDER = (
     "unseen_tasks",
     "collect_tasks",
     "imports",
+    "pretrain_tasks",
+    "pretrained",
     "evolve",
     "task",
     "model",
@@ -56,8 +58,9 @@ def plain(value: Any) -> Any:
 
 def class_defaults() -> dict[str, Any]:
     """Every top-level key's default (``Params()``), the default task's entry as its family key alone;
-    ``collect_tasks`` is left out (absent, it is computed from ``tasks`` and ``imports``), ``phases`` and
-    ``sweep.space`` are written as the (empty) mappings a params file gives them."""
+    ``collect_tasks`` and ``pretrain_tasks`` are left out (absent, they are computed from ``tasks`` and ``imports``
+    or ``pretrained``), ``phases`` and ``sweep.space`` are written as the (empty) mappings a params file gives
+    them."""
     defaults = Params()
     values: dict[str, Any] = {}
     for key in KEY_ORDER:
@@ -65,7 +68,7 @@ def class_defaults() -> dict[str, Any]:
             values[key] = {name: {"family": task.family} for name, task in defaults.task.items()}
         elif key == "phases":
             values[key] = {}
-        elif key != "collect_tasks":
+        elif key not in ("collect_tasks", "pretrain_tasks"):
             values[key] = plain(getattr(defaults, key))
     values["sweep"]["space"] = {}
     return values
@@ -88,6 +91,8 @@ def complete(raw: Mapping[str, Any]) -> dict[str, Any]:
         full["task"] = {name: _complete_entry(entry) for name, entry in tasks.items()}
     if "collect_tasks" not in full:  # written, as dvc.yaml's collect stage iterates over it
         full["collect_tasks"] = list(params_from_dict(full).collect_tasks or ())
+    if "pretrain_tasks" not in full:  # written, as dvc.yaml's pretrain stage iterates over it
+        full["pretrain_tasks"] = list(params_from_dict(full).pretrain_tasks or ())
     return {key: full[key] for key in KEY_ORDER if key in full} | full
 
 

@@ -12,7 +12,8 @@ def stage_names(params: Params) -> list[str]:
     names = [f"code@{task}" for task in params.task]
     for task in params.tasks:
         data = f"import-data@{task}" if task in params.imports else f"collect@{task}"
-        names += [data, f"reference@{task}", f"pretrain@{task}"]
+        phase0 = f"import-model@{task}" if task in params.pretrained else f"pretrain@{task}"
+        names += [data, f"reference@{task}", phase0]
         names.append(f"evaluate-phase0@{task}")
         if task in params.unseen_tasks:
             names.append(f"evaluate-unseen-phase0@{task}")
@@ -43,12 +44,13 @@ def describe(params: Params) -> list[str]:
         t = p.resolve(name)
         src = p.imports.get(name)
         data = f"import-data@{name}: {src.format} data from {src.path}" if src else f"collect@{name}: {_data(t)}"
-        lines += [
-            f"  {data}",
-            f"  reference@{name}: the score's 0 and 100, {t.evaluate.episodes} episodes",
-            f"  pretrain@{name}: {t.pretrain.steps} steps, batch {t.pretrain.batch_size} x {t.pretrain.grad_accum}, "
-            f"lr {t.pretrain.lr:g}",
-        ]
+        phase0 = (
+            f"  import-model@{name}: trained models from {p.pretrained[name]}"
+            if name in p.pretrained
+            else f"  pretrain@{name}: {t.pretrain.steps} steps, batch {t.pretrain.batch_size} x "
+            f"{t.pretrain.grad_accum}, lr {t.pretrain.lr:g}"
+        )
+        lines += [f"  {data}", f"  reference@{name}: the score's 0 and 100, {t.evaluate.episodes} episodes", phase0]
         if hasattr(t.settings, "value"):
             lines.append(
                 f"    + value function: {t.settings.value.steps} steps, discount {t.settings.value.discount:g}"

@@ -25,9 +25,10 @@ __all__ = ["ConfigError", "load_params", "params_from_dict"]
 
 _PARAMS = TypeAdapter(Params)
 #: top-level keys a params file may leave out: they have a meaning when absent (no imports; collect every task that
-#: is not imported; no sweep: a sweep trial's params have none). Every other key of the generic sections must be
+#: is not imported; no pretrained models; pretrain every task that has none; no sweep: a sweep trial's params have
+#: none). Every other key of the generic sections must be
 #: written: a run uses only what the file says.
-OPTIONAL_KEYS = ("imports", "collect_tasks", "sweep")
+OPTIONAL_KEYS = ("imports", "collect_tasks", "pretrained", "pretrain_tasks", "sweep")
 #: keys whose entries are not sections with fixed keys (task entries are checked by their family's model)
 OPEN_KEYS = ("task", "phases", "sweep.space")
 

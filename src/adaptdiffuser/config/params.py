@@ -60,6 +60,10 @@ class Params:
     # the tasks of `tasks` whose data the collect stage makes (None: every task that is not imported)
     collect_tasks: tuple[Str, ...] | None = None
     imports: dict[Str, ImportParams] = field(default_factory=dict)  # task -> its external data (the import stage)
+    # task -> a folder of trained phase-0 models (seed<s>/ each), imported by import-model instead of pretraining
+    pretrained: dict[Str, Str] = field(default_factory=dict)
+    # the tasks of `tasks` that the pretrain stage trains (None: every task without a `pretrained` folder)
+    pretrain_tasks: tuple[Str, ...] | None = None
     evolve: Str | None = DEFAULT_TASK  # the task the evolution phases run on; null = phase 0 only
     evolution: EvolutionParams = field(default_factory=EvolutionParams)
     alpha: Float = 0.0
@@ -101,7 +105,7 @@ class Params:
     def _empty_list(cls, value: Any) -> Any:
         return () if value is None else value
 
-    @field_validator("imports", mode="before")
+    @field_validator("imports", "pretrained", mode="before")
     @classmethod
     def _empty_imports(cls, value: Any) -> Any:
         return {} if value is None else value
@@ -119,6 +123,8 @@ class Params:
     def _cross_checks(self) -> Params:
         if self.collect_tasks is None:  # not written: every task of `tasks` that is not imported
             object.__setattr__(self, "collect_tasks", tuple(t for t in self.tasks if t not in self.imports))
+        if self.pretrain_tasks is None:  # not written: every task of `tasks` without a pretrained folder
+            object.__setattr__(self, "pretrain_tasks", tuple(t for t in self.tasks if t not in self.pretrained))
         check_cross_fields(self)
         return self
 
@@ -215,6 +221,7 @@ def check_cross_fields(p: Params) -> None:
                     f"{p.evolved.family} family ({p.evolve}); choose one of {list(recipes)}"
                 )
     check_data_sources(p)
+    check_model_sources(p)
 
 
 def check_task(task: TaskParams, params: Params) -> None:
@@ -250,6 +257,28 @@ def check_data_sources(p: Params) -> None:
                 f"collect_tasks: {name!r} of tasks has no data source; add it to collect_tasks or give it an entry "
                 "under imports"
             )
+
+
+def check_model_sources(p: Params) -> None:
+    """Every task of ``tasks`` gets its phase-0 models from exactly one place: the pretrain stage
+    (``pretrain_tasks``) or an import (a key of ``pretrained``)."""
+    trained = p.pretrain_tasks or ()
+    for name, folder in p.pretrained.items():
+        if name not in p.tasks:
+            raise ConfigError(
+                f"pretrained.{name}: {name!r} is not one of tasks {list(p.tasks)}; add it to tasks or remove its entry"
+            )
+        if not folder.strip():
+            raise ConfigError(f"pretrained.{name}: is empty; name the folder that holds its seed<s>/ models")
+    for name in trained:
+        if name not in p.tasks:
+            raise ConfigError(f"pretrain_tasks: {name!r} is not one of tasks {list(p.tasks)}; remove it")
+    expected = [t for t in p.tasks if t not in p.pretrained]
+    if sorted(trained) != sorted(expected):
+        raise ConfigError(
+            f"pretrain_tasks: must list the tasks of 'tasks' that have no pretrained folder: {expected}, got "
+            f"{list(trained)} (remove the key to have it computed)"
+        )
 
 
 def check_task_lists(p: Params) -> None:
