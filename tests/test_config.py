@@ -603,7 +603,7 @@ def test_every_set_of_start_states_is_checked_and_no_two_share_an_episode(tmp_pa
     seeds: disjoint seed numbers, and, since episode i of seed b plays ``episode_rng(b, i)`` (the episode a word of
     its own, not added to b), no episode of one set starts like any episode of another, however many each plays."""
     params = load_params(write_params(tmp_path, {"seeds": [0, 1, 2, 3, 4]}))
-    sets = start_state_sets(params, UMAZE)
+    sets = start_state_sets(UMAZE, params.task[UMAZE].evaluate, params.sweep)
     assert [s.key for s in sets] == [
         f"{T}.evaluate.seed",
         f"{T}.evaluate.held_out_seed",

@@ -23,7 +23,7 @@ from adaptdiffuser.config.sections import (
     PlannerParams,
     PretrainParams,
 )
-from adaptdiffuser.config.start_states import check_start_states
+from adaptdiffuser.config.start_states import check_start_states, start_state_sets
 from adaptdiffuser.config.sweep_settings import SweepParams
 from adaptdiffuser.config.tasks import GENERIC_SECTIONS, TaskParams, build_task
 
@@ -204,7 +204,10 @@ def check_cross_fields(p: Params) -> None:
     check_task_lists(p)
     check_chain(p.phases)
     check_sweep(p)
-    check_start_states(p)
+    swept = p.sweep.task if p.sweep.task is not None else p.evolve
+    sweep = p.sweep if p.sweep.space else None  # no space: no sweep runs
+    sets = {t: start_state_sets(t, p.task[t].evaluate, sweep if t == swept else None) for t in p.tasks}
+    check_start_states(sets, p.seeds)
     for name in p.tasks:  # entries not listed in `tasks` are type-checked only (another profile's tasks)
         check_task(p.task[name], p)
     if p.phases and p.evolve is not None:

@@ -23,9 +23,10 @@ from typing import TYPE_CHECKING
 from adaptdiffuser.config.errors import ConfigError
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
+    from collections.abc import Mapping, Sequence
 
-    from adaptdiffuser.config.params import Params
+    from adaptdiffuser.config.sections import EvaluateParams
+    from adaptdiffuser.config.sweep_settings import SweepParams
 
 #: ``evaluate-kept --eval-seed``'s default: kept models' re-tests on start states of their own (plus training seed)
 KEPT_EVAL_SEED = 9000
@@ -54,19 +55,18 @@ class StartStates:
     who: str
 
 
-def start_state_sets(p: Params, task: str) -> list[StartStates]:
-    """Every set of start states played on ``task`` (a task of ``tasks``) under params ``p``, in the order the
-    check blames them: the pipeline's, the sweep's (the swept task only), evaluate-kept's defaults."""
-    ev = p.task[task].evaluate
+def start_state_sets(task: str, ev: EvaluateParams, sweep: SweepParams | None) -> list[StartStates]:
+    """Every set of start states played on ``task`` (its ``evaluate`` section ``ev``; ``sweep``: the sweep's settings
+    when a sweep runs on this task, else None), in the order the check blames them: the pipeline's, the sweep's,
+    evaluate-kept's defaults."""
     where = f"task.{task}.evaluate"
     sets = [StartStates(f"{where}.seed", ev.seed, "pipeline")]
     if ev.held_out_episodes:
         sets.append(StartStates(f"{where}.held_out_seed", ev.held_out_seed, "pipeline"))
-    swept = p.sweep.task if p.sweep.task is not None else p.evolve
-    if task == swept and p.sweep.space:  # no space: no sweep runs (a trial's own params carry none)
-        sets.append(StartStates("sweep.evaluate_seed", p.sweep.evaluate_seed, "sweep"))
+    if sweep is not None:
+        sets.append(StartStates("sweep.evaluate_seed", sweep.evaluate_seed, "sweep"))
         if ev.held_out_episodes:
-            sets.append(StartStates("sweep.held_out_seed", p.sweep.held_out_seed, "sweep"))
+            sets.append(StartStates("sweep.held_out_seed", sweep.held_out_seed, "sweep"))
     sets += [
         StartStates("evaluate-kept --eval-seed", KEPT_EVAL_SEED, "kept"),
         StartStates("evaluate-kept --held-out-seed", KEPT_HELD_OUT_SEED, "kept"),
@@ -85,19 +85,18 @@ def _why(a: StartStates, b: StartStates) -> str:
     return "the held-out start states must be others"
 
 
-def check_start_states(p: Params) -> None:
-    """No two sets of start states of a task (:func:`start_state_sets`) share a seed for any training seed of
-    ``seeds``; a one-line :class:`ConfigError` naming the key to change."""
-    for task in p.tasks:
-        sets = start_state_sets(p, task)
+def check_start_states(sets_by_task: Mapping[str, list[StartStates]], seeds: Sequence[int]) -> None:
+    """No two sets of start states of a task (``sets_by_task``: :func:`start_state_sets` of each task of ``tasks``)
+    share a seed for any training seed of ``seeds``; a one-line :class:`ConfigError` naming the key to change."""
+    for task, sets in sets_by_task.items():
         for j, b in enumerate(sets):
             for a in sets[:j]:
-                common = start_seeds(a.base, p.seeds) & start_seeds(b.base, p.seeds)
+                common = start_seeds(a.base, seeds) & start_seeds(b.base, seeds)
                 if not common:
                     continue
                 if a.who == b.who == "kept":
                     raise ConfigError(
-                        f"seeds: training seeds {min(p.seeds)}..{max(p.seeds)} spread past the {b.base - a.base} "
+                        f"seeds: training seeds {min(seeds)}..{max(seeds)} spread past the {b.base - a.base} "
                         "seeds between evaluate-kept's two default sets; use training seeds closer together"
                     )
                 blamed, other = (a, b) if b.who == "kept" else (b, a)
