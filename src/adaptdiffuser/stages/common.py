@@ -17,7 +17,7 @@ def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str
     returns the aggregate."""
     from adaptdiffuser.io import write_json
     from adaptdiffuser.seed_metrics import over_seeds
-    from adaptdiffuser.tooling.mlflow_logging import log_over_seeds
+    from adaptdiffuser.tooling.run_records import log_over_seeds
 
     metrics = over_seeds(per_seed)
     write_json(root / path, metrics)
