@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:  # torch is imported where a device is resolved: the report stage starts without it
+    import torch
 
 #: a phase's gain over its control: mean ± standard error, 95 % interval, probability of improvement
 GAIN_KEYS = ("gain_mean", "gain_stderr", "gain_ci_low", "gain_ci_high", "probability_of_improvement")
@@ -27,6 +29,8 @@ def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str
 
 def resolve_device(name: str) -> torch.device:
     """``auto`` picks CUDA when available; anything else is passed to torch (``cpu``, ``cuda``, ``cuda:1``)."""
+    import torch
+
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)
