@@ -159,3 +159,21 @@ def test_importing_a_stage_imports_no_mlflow_and_the_report_stage_no_torch() -> 
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split("\n")[:2] == ["False", "[]"] and len(stages) > 10
+
+
+def test_the_mlflow_log_command_logs_what_a_failed_pipeline_left(
+    store: MlflowClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a pipeline that stopped before ``summarize``, ``adaptdiffuser mlflow-log`` logs its records by hand."""
+    from typer.testing import CliRunner
+
+    from adaptdiffuser.cli import app
+
+    with pytest.raises(RuntimeError), stage_run(TASK, "evaluate", 1, {}, tmp_path, seed=0):
+        raise RuntimeError("boom")
+    monkeypatch.chdir(tmp_path)
+    out = CliRunner().invoke(app, ["mlflow-log"])
+    assert out.exit_code == 0 and out.output.startswith("logged 1 stage run(s) to sqlite:///"), out.output
+    (run,) = store.search_runs([store.get_experiment_by_name(TASK).experiment_id], "tags.stage = 'evaluate'")
+    assert run.info.status == "FAILED" and pending_records(tmp_path) == []
+    assert CliRunner().invoke(app, ["mlflow-log"]).output.startswith("logged 0 stage run(s)")
