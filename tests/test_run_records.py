@@ -5,6 +5,7 @@ halfway through neither losing nor doubling a record; and a stage that imports n
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -177,3 +178,20 @@ def test_the_mlflow_log_command_logs_what_a_failed_pipeline_left(
     (run,) = store.search_runs([store.get_experiment_by_name(TASK).experiment_id], "tags.stage = 'evaluate'")
     assert run.info.status == "FAILED" and pending_records(tmp_path) == []
     assert CliRunner().invoke(app, ["mlflow-log"]).output.startswith("logged 0 stage run(s)")
+
+
+def test_pending_records_are_ignored_by_git_and_dvc(tmp_path: Path) -> None:
+    """Whole records and the hidden folder of one being written are neither committed nor seen by DVC."""
+    repo = Path(__file__).resolve().parents[1]
+    for name in (".gitignore", ".dvcignore"):
+        (tmp_path / name).write_text((repo / name).read_text())
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", DVC_NO_ANALYTICS="1")
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True, env=env)
+    subprocess.run(["dvc", "init", "-q"], cwd=tmp_path, check=True, env=env)
+    paths = [f"{PENDING}/0001-ab/record.json", f"{PENDING}/.0002-cd.tmp/models/0/model.pt", f"{PENDING}/.lock"]
+    for rel in paths:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("x")
+    for tool in ("git", "dvc"):
+        for rel in paths:
+            assert subprocess.run([tool, "check-ignore", "-q", rel], cwd=tmp_path, env=env).returncode == 0, (tool, rel)
