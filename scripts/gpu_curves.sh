@@ -75,7 +75,8 @@ prepare() {
   tar czf gpu/site.tgz.tmp -C "$site" . && mv gpu/site.tgz.tmp gpu/site.tgz
   # what a run (here, with --device cpu) leaves: models, and the second workspace's copy of the data, which would
   # not travel within the limit
-  rm -rf "$wheels" "$site" gpu/ws-*/models gpu/ws-*/mlflow.db gpu/ws-science/data gpu/ws-science/metrics
+  rm -rf "$wheels" "$site" gpu/ws-*/models gpu/ws-*/mlflow.db gpu/ws-*/mlflow-pending gpu/ws-science/data \
+    gpu/ws-science/metrics
   echo "gpu/ ready ($(du -sh gpu | cut -f1); a call carries 64 MiB with the repository): on the lent machine run"
   echo "  bash scripts/gpu_curves.sh run    (device tool, carry [\"gpu\"])"
 }

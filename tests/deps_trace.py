@@ -46,6 +46,7 @@ IGNORED = (
     "mlflow.db-journal",
     "mlflow.db-wal",
     "mlflow.db-shm",
+    "mlflow-pending",
     "mlartifacts",
     "mlruns",
     "models/.resume",

@@ -6,9 +6,7 @@ show each source's share within a binomial tolerance."""
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -102,12 +100,7 @@ def project(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Path, Para
         return [(cfg.steps, 0.0)]
 
     monkeypatch.setattr(finetune, "train", record)
-    monkeypatch.setattr(finetune, "stage_run", lambda *args, **kwargs: contextlib.nullcontext())
-    ignore = SimpleNamespace(log_metrics=lambda *a, **k: None, log_metric=lambda *a, **k: None)
-    monkeypatch.setattr(finetune, "mlflow", SimpleNamespace(**vars(ignore), log_artifacts=lambda *a, **k: None))
     monkeypatch.setattr(finetune, "save_loss_curve", lambda *args, **kwargs: None)
-    monkeypatch.setattr(finetune, "log_dataset", lambda *args, **kwargs: None)
-    monkeypatch.setattr(finetune, "log_model", lambda *args, **kwargs: None)
     return tmp_path, params, seen
 
 

@@ -36,6 +36,7 @@ from adaptdiffuser.tooling.mlflow_logging import (
     PARENT_RUN_ENV,
     PIPELINE_RUN_ENV,
     PIPELINE_STAGE,
+    log_pending,
     registered_model_name,
     stage_run,
 )
@@ -102,6 +103,7 @@ def test_stages_log_to_a_tracking_server(server: str, tmp_path: Path, monkeypatc
         run_collect(params, TASK, tmp_path, progress=False)
         run_pretrain(params, TASK, tmp_path, torch.device("cpu"), progress=False)
         log_evolution(TASK, {"phase_0": {"score_mean": 12.5, "score_stderr": 1.0}}, tmp_path)
+        log_pending(tmp_path)  # as the summarize stage does after its own runs
 
         client = MlflowClient(server)
         experiment = client.get_experiment_by_name(TASK)
@@ -151,7 +153,8 @@ def test_stage_runs_find_their_pipeline_run(tmp_path: Path, monkeypatch: pytest.
     def parent() -> str:
         with stage_run("t", "collect", 0, {}, tmp_path) as run:
             pass
-        return client.get_run(run.info.run_id).data.tags["mlflow.parentRunId"]
+        run_id = log_pending(tmp_path)[run.id]
+        return client.get_run(run_id).data.tags["mlflow.parentRunId"]
 
     try:
         repro = parent()

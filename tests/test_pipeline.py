@@ -26,7 +26,7 @@ from smoke_project import traces_dir
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import apply_profile, load_params, stage_names
 from adaptdiffuser.data.schema import read_trajectories
-from adaptdiffuser.tooling.mlflow_logging import stage_run
+from adaptdiffuser.tooling.mlflow_logging import log_pending, stage_run
 
 REPO = Path(__file__).resolve().parents[1]
 PHASE_STAGES = ("generate", "discriminate", "finetune", "evaluate", "control", "evaluate-control")
@@ -405,6 +405,7 @@ def test_failed_stage_marks_mlflow_run_failed(tmp_path: Path, monkeypatch: pytes
     monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
     with pytest.raises(RuntimeError, match="boom"), stage_run("maze2d-test", "pretrain", 0, {"a": {"b": 1}}, tmp_path):
         raise RuntimeError("boom")
+    log_pending(tmp_path)  # what the summarize stage, or `adaptdiffuser mlflow-log` after a failed pipeline, does
     client = MlflowClient(tracking_uri=uri)
     experiment = client.get_experiment_by_name("maze2d-test")
     (run,) = client.search_runs([experiment.experiment_id], "tags.stage = 'pretrain'")

@@ -12,8 +12,16 @@ from mlflow.tracking import MlflowClient
 
 from adaptdiffuser.config import SweepParams
 from adaptdiffuser.errors import StageError
-from adaptdiffuser.tooling.mlflow_logging import REDACTED, ensure_experiment, log_params, redact, redact_text, stage_run
+from adaptdiffuser.tooling.mlflow_logging import (
+    REDACTED,
+    ensure_experiment,
+    log_pending,
+    redact,
+    redact_text,
+    stage_run,
+)
 from adaptdiffuser.tooling.optuna_sweep import make_storage, start_parent_run
+from adaptdiffuser.tooling.run_records import PENDING
 
 PASSWORD = "S3cr3t-pw"
 STORAGE = f"postgresql://alice:{PASSWORD}@db.example.org:5432/optuna"
@@ -77,8 +85,12 @@ def test_no_secret_reaches_mlflow(tmp_path: Path, monkeypatch: pytest.MonkeyPatc
         "alpha": 30.0,
     }
     try:
-        with stage_run("maze2d-umaze", "pretrain", 0, params, tmp_path, seed=0):
-            log_params({"client_secret": "sh-secret", "data.sha256": "ab" * 32})
+        with stage_run("maze2d-umaze", "pretrain", 0, params, tmp_path, seed=0) as run:
+            run.log_params({"client_secret": "sh-secret", "data.sha256": "ab" * 32})
+        for record in (tmp_path / PENDING).rglob("*"):  # nor the record the stage leaves for MLflow
+            if record.is_file():
+                assert not [secret for secret in SECRETS if secret in record.read_text()]
+        log_pending(tmp_path)
         client = MlflowClient(uri)
         experiment_id = ensure_experiment("maze2d-umaze", tmp_path)
         sweep = SweepParams(study="secret-study", space={"alpha": {"low": 1.0, "high": 100.0, "log": True}})

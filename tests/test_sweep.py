@@ -128,6 +128,11 @@ def test_two_workers_share_a_journal_study_and_mlflow_nests_the_trials(project: 
     for child in children:
         assert set(child.data.params) == {"alpha", "evolution.discriminate.max_error"}
         assert [m.step for m in client.get_metric_history(child.info.run_id, "objective")] == [1]
+        # the trial's stage runs, logged by the worker from their run records, nested under the trial's run
+        stages = client.search_runs([parent.info.experiment_id], f"tags.mlflow.parentRunId = '{child.info.run_id}'")
+        assert sorted(f"{r.data.tags['stage']}-phase{r.data.tags['phase']}.log" for r in stages) == logs
+        assert all(r.info.status == "FINISHED" for r in stages)
+    assert not list((project / "sweeps" / "adaptdiffuser").glob("trial_*/mlflow-pending/[!.]*"))  # all logged
     pictures = {a.path for a in client.list_artifacts(parent.info.run_id, "optuna")}
     assert pictures == {"optuna/optimization_history.png", "optuna/param_importances.png"}
 

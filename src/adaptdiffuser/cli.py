@@ -657,6 +657,17 @@ def times() -> None:
     typer.echo(f"{sum(row['seconds'] for row in rows):8.1f} s  in all ({len(rows)} stage runs)")
 
 
+@app.command("mlflow-log")
+def mlflow_log() -> None:
+    """Log the stage run records waiting in mlflow-pending/ to MLflow. The summarize stage does it at the end of a
+    pipeline run; run this after `dvc repro <stage>` of an earlier stage, or after a pipeline that failed."""
+    from adaptdiffuser.tooling.mlflow_logging import log_pending, tracking_uri
+    from adaptdiffuser.tooling.run_records import redact_text
+
+    logged = log_pending(Path.cwd())
+    typer.echo(f"logged {len(logged)} stage run(s) to {redact_text(tracking_uri(Path.cwd()))}")
+
+
 @app.command()
 def check(params: ParamsPath = Path("params.yaml")) -> None:
     """Validate a params file (exit 1 on a bad value, naming the key), name the family keys its task entries leave

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:  # torch is imported where a device is resolved: the report stage starts without it
+    import torch
 
 #: a phase's gain over its control: mean ± standard error, 95 % intervals (over seeds; over episodes), win rate
 GAIN_KEYS = (
@@ -25,7 +27,7 @@ def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str
     returns the aggregate."""
     from adaptdiffuser.io import write_json
     from adaptdiffuser.seed_metrics import over_seeds
-    from adaptdiffuser.tooling.mlflow_logging import log_over_seeds
+    from adaptdiffuser.tooling.run_records import log_over_seeds
 
     metrics = over_seeds(per_seed)
     write_json(root / path, metrics)
@@ -35,6 +37,8 @@ def save_over_seeds(per_seed: dict[int, dict], path: Path, task: str, stage: str
 
 def resolve_device(name: str) -> torch.device:
     """``auto`` picks CUDA when available; anything else is passed to torch (``cpu``, ``cuda``, ``cuda:1``)."""
+    import torch
+
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     device = torch.device(name)

@@ -6,8 +6,6 @@ import sys
 from dataclasses import asdict, replace
 from pathlib import Path
 
-import mlflow
-
 from adaptdiffuser.config import Params
 from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.data.schema import Trajectories, read_trajectories, write_trajectories
@@ -16,7 +14,7 @@ from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import discriminator_metrics_path, discriminator_plot_path, generated_path, selected_path
 from adaptdiffuser.plots import save_discriminator_histograms
 from adaptdiffuser.stages.common import file_digest, save_over_seeds
-from adaptdiffuser.tooling.mlflow_logging import stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 
 
 def run_discriminate(params: Params, task_name: str, root: Path, phase: int, progress: bool = True) -> dict:
@@ -45,12 +43,12 @@ def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, se
         "seed": seed,
         "data": {"generated": {"path": str(generated_path(task.name, phase, seed)), "sha256": file_digest(source)}},
     }
-    with stage_run(task.name, "discriminate", phase, logged, root, seed=seed):
+    with stage_run(task.name, "discriminate", phase, logged, root, seed=seed) as run:
         family = get_family(task.family)
         files = TaskFiles(root, task.name, seed=seed)
         judgement = family.discriminate(task, generated, cfg, phase, files, progress)
         report = judgement.report()
-        mlflow.log_metrics({f"discriminator.{k}": float(v) for k, v in report.items()})
+        run.log_metrics({f"discriminator.{k}": float(v) for k, v in report.items()})
         picture = root / discriminator_plot_path(task.name, phase, seed)
         save_discriminator_histograms(
             judgement,
@@ -58,7 +56,7 @@ def discriminate_seed(params: Params, task_name: str, root: Path, phase: int, se
             picture,
             f"phase {phase}, seed {seed}: {report['kept']} of {report['generated']} kept",
         )
-        mlflow.log_artifact(str(picture), artifact_path="discriminator")
+        run.log_artifact(str(picture), artifact_path="discriminator")
         generator = {
             "stage": "discriminate",
             "phase": phase,

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import mlflow
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
@@ -33,7 +32,7 @@ from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import save_over_seeds
 from adaptdiffuser.stages.seed_records import each_seed, evaluation_key, remove_records
 from adaptdiffuser.stages.training_data import code_digest
-from adaptdiffuser.tooling.mlflow_logging import stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 
 
 def run_evaluate(
@@ -125,7 +124,7 @@ def evaluate_seed(
     logged = _settings(params, task, seed) | {"model": {"path": str(model), "data": bundle.config.get("data", {})}}
     name = phase_name(phase, control)
     out_dir = root / results_dir(task.name, phase, seed, control)
-    with stage_run(task.name, "evaluate-control" if control else "evaluate", phase, logged, root, seed=seed):
+    with stage_run(task.name, "evaluate-control" if control else "evaluate", phase, logged, root, seed=seed) as run:
         files = TaskFiles(root, task.name, model, seed)
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device, params.compile.sampling)
         controller = family.controller(task, planner, files, device)
@@ -157,12 +156,12 @@ def evaluate_seed(
             if control:
                 gain, lists["gain_per_episode"] = _gain_over(evolved_dir / table_name, result.episodes, scores, phase)
                 metrics |= gain
-            mlflow.log_metrics({f"{prefix}{k}": float(v) for k, v in metrics.items()})
+            run.log_metrics({f"{prefix}{k}": float(v) for k, v in metrics.items()})
             out = out_dir / table_name
             out.parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(out) as tmp:
                 pq.write_table(table, tmp)
-            mlflow.log_artifact(str(out))
+            run.log_artifact(str(out))
             return metrics | lists, result
 
         metrics, result = play(ev.episodes, ev.seed + seed, "episodes.parquet", "")
@@ -175,7 +174,7 @@ def evaluate_seed(
             score = normalized_score(result.returns[i], ref["r_min"], ref["r_max"])
             title = f"{task.name} {name} seed {seed}, episode {i}: return {result.returns[i]:.0f}, score {score:.0f}"
             family.save_picture(task, picture, result.plans[i], result.executed[i], title, goal=result.goals[i])
-            mlflow.log_artifact(str(picture), artifact_path="plans")
+            run.log_artifact(str(picture), artifact_path="plans")
     return metrics
 
 

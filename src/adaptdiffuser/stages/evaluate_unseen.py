@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import mlflow
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle
@@ -18,7 +17,7 @@ from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import save_over_seeds
 from adaptdiffuser.stages.seed_records import each_seed, evaluation_key, remove_records
 from adaptdiffuser.stages.training_data import code_digest
-from adaptdiffuser.tooling.mlflow_logging import stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 
 
 def stage_name(control: bool) -> str:
@@ -104,14 +103,14 @@ def evaluate_unseen_seed(
     bundle = load_bundle(root / model_dir(task.name, phase, seed, control), device)
     pl = task.planner
     logged = _settings(params, task, unseen, seed)
-    with stage_run(task.name, stage_name(control), phase, logged, root, seed=seed):
+    with stage_run(task.name, stage_name(control), phase, logged, root, seed=seed) as run:
         planner = Planner(bundle, make_sampler(pl.sampler, pl.sampler_steps), device, params.compile.sampling)
         pictures = root / unseen_plots_dir(task.name, phase, seed, control)
         pictures.mkdir(parents=True, exist_ok=True)  # the stage's output, also for a family that draws none
         title = f"phase {phase}{' control' if control else ''} seed {seed}"
         metrics = family.evaluate_unseen(task, planner, params.alpha, ref, pictures, title, progress)
         measured = {k: v for k, v in metrics.items() if v is not None}  # None: no episode to measure it on
-        mlflow.log_metrics({f"{unseen}.{k}": float(v) for k, v in measured.items()})
+        run.log_metrics({f"{unseen}.{k}": float(v) for k, v in measured.items()})
         for picture in sorted(pictures.glob("*.png")):
-            mlflow.log_artifact(str(picture), artifact_path=unseen)
+            run.log_artifact(str(picture), artifact_path=unseen)
     return metrics

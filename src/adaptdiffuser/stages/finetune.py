@@ -7,7 +7,6 @@ import shutil
 from dataclasses import asdict, replace
 from pathlib import Path
 
-import mlflow
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle, save_bundle
@@ -20,7 +19,7 @@ from adaptdiffuser.layout import model_dir, phase_models_dir, phase_name, resume
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.stages.common import file_digest
 from adaptdiffuser.stages.training_data import code_digest, expert_training_data
-from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 from adaptdiffuser.training import carried_optimizer, fingerprint, train
 
 
@@ -95,13 +94,11 @@ def finetune_seed(
         "code": code_digest(root, task.name),
     }
     stage = "control" if control else "finetune"
-    with stage_run(task.name, stage, phase, logged, root, seed=seed):
-        log_dataset(root / expert_info["path"], expert_info["sha256"], "training", expert_info["path"])
+    with stage_run(task.name, stage, phase, logged, root, seed=seed) as run:
+        run.log_dataset(root / expert_info["path"], expert_info["sha256"], "training", expert_info["path"])
         for name, info in synthetic_info.items():
-            log_dataset(root / info["path"], info["sha256"], f"synthetic-{name}", info["path"])
-        mlflow.log_metrics(
-            {f"windows.{name}": len(p) for name, p in zip(["expert", *synthetic_info], parts, strict=True)}
-        )
+            run.log_dataset(root / info["path"], info["sha256"], f"synthetic-{name}", info["path"])
+        run.log_metrics({f"windows.{name}": len(p) for name, p in zip(["expert", *synthetic_info], parts, strict=True)})
         resume = root / resume_path(task.name, phase, seed, control)
         resume.parent.mkdir(parents=True, exist_ok=True)
         history = train(
@@ -112,7 +109,7 @@ def finetune_seed(
             resume_path=resume,
             run_id=fingerprint(logged, bundle.config),
             progress=progress,
-            on_log=lambda step, loss: mlflow.log_metric("train_loss", loss, step=step),
+            on_log=lambda step, loss: run.log_metric("train_loss", loss, step=step),
             optimizer_state=carried_optimizer(bundle, cfg.finetune.optimizer, str(source)),
             compiled=params.compile.training,
         )
@@ -131,7 +128,7 @@ def finetune_seed(
             with atomic_dir(out / "value") as tmp:
                 shutil.copytree(root / source / "value", tmp, dirs_exist_ok=True)
         save_loss_curve(history, out / "train_loss.png")
-        mlflow.log_artifacts(str(out), artifact_path="checkpoint")
+        run.log_artifacts(str(out), artifact_path="checkpoint")
         label, primary = phase_name(phase, control), seed == params.seeds[0]
-        log_model(bundle.ema, out, task.name, label, seed, primary, {"stage": stage, "previous": cfg.previous})
+        run.log_model(bundle.ema, out, task.name, label, seed, primary, {"stage": stage, "previous": cfg.previous})
     return out

@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import asdict
 from pathlib import Path
 
-import mlflow
 import torch
 
 from adaptdiffuser.checkpoint import load_bundle
@@ -17,7 +16,7 @@ from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import generated_path, model_dir
 from adaptdiffuser.planning import Planner
-from adaptdiffuser.tooling.mlflow_logging import stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 
 
 def run_generate(
@@ -58,7 +57,7 @@ def generate_seed(
         "alpha": params.alpha,
         **asdict(g),
     }
-    with stage_run(task.name, "generate", phase, logged, root, seed=seed):
+    with stage_run(task.name, "generate", phase, logged, root, seed=seed) as run:
         planner = Planner(bundle, make_sampler(g.sampler, g.sampler_steps), device, params.compile.sampling)
         files = TaskFiles(root, task.name, source, seed)
         family = get_family(task.family)
@@ -66,5 +65,5 @@ def generate_seed(
         out = root / generated_path(task.name, phase, seed)
         out.parent.mkdir(parents=True, exist_ok=True)
         write_trajectories(out, traj)
-        mlflow.log_metrics(stats)
+        run.log_metrics(stats)
     return stats

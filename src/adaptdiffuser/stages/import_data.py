@@ -6,8 +6,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import mlflow
-
 from adaptdiffuser.config import ConfigError, Params
 from adaptdiffuser.data.d4rl import ExternalData, read_d4rl
 from adaptdiffuser.data.schema import write_trajectories
@@ -15,7 +13,7 @@ from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import write_json
 from adaptdiffuser.layout import collect_dir, dataset_path
 from adaptdiffuser.stages.common import file_digest, source_digest
-from adaptdiffuser.tooling.mlflow_logging import log_params, stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 
 #: what the import writes into the task's collect folder (in place of the collect stage's ``collect.json``)
 IMPORT_SUMMARY = "import.json"
@@ -39,7 +37,7 @@ def run_import(params: Params, task_name: str, root: Path, progress: bool = True
         raise ConfigError(f"imports: has no entry for task {task.name}; add imports.{task.name}: {{format, path}}")
     family = get_family(task.family)
     logged = {"task": task.section("settings"), "import": dataclasses.asdict(spec), "family": family.describe(task)}
-    with stage_run(task.name, "import", 0, logged, root):
+    with stage_run(task.name, "import", 0, logged, root) as run:
         raw = read_external(spec.format, spec.path)
         traj = family.from_external(task, raw)
         source_sha = source_digest(Path(raw.source))
@@ -47,9 +45,9 @@ def run_import(params: Params, task_name: str, root: Path, progress: bool = True
         out = root / dataset_path(task.name)
         write_trajectories(out, traj)
         stats = {"steps": len(traj), "episodes": len(traj.episodes()), "reward_mean": float(traj.reward.mean())}
-        mlflow.log_metrics(stats)
+        run.log_metrics(stats)
         digest = file_digest(out)
-        log_params({"data.sha256": digest, "data.source_sha256": source_sha})
+        run.log_params({"data.sha256": digest, "data.source_sha256": source_sha})
         summary = {
             "imported": True,
             "format": spec.format,

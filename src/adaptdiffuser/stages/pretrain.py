@@ -5,7 +5,6 @@ from __future__ import annotations
 from dataclasses import asdict
 from pathlib import Path
 
-import mlflow
 import torch
 
 from adaptdiffuser.checkpoint import ModelBundle, make_bundle, save_bundle
@@ -18,7 +17,7 @@ from adaptdiffuser.layout import model_dir, phase_models_dir, resume_path, value
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.stages.training_data import code_digest, expert_training_data, pretrain_config
 from adaptdiffuser.stages.value_function import run_value
-from adaptdiffuser.tooling.mlflow_logging import log_dataset, log_model, stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 from adaptdiffuser.training import fingerprint, train
 
 
@@ -79,10 +78,10 @@ def pretrain_seed(
         "seed": seed,
         "code": code_digest(root, task.name),
     }
-    with stage_run(task.name, "pretrain", 0, logged, root, seed=seed):
-        log_dataset(root / expert["path"], expert["sha256"], "training", expert["path"])
+    with stage_run(task.name, "pretrain", 0, logged, root, seed=seed) as run:
+        run.log_dataset(root / expert["path"], expert["sha256"], "training", expert["path"])
         bundle, dataset = phase0_model(task, traj, train_cfg, logged["data"], seed)
-        mlflow.log_metrics(
+        run.log_metrics(
             {
                 "windows": len(dataset),
                 "expert_episodes": len(traj.episodes()),
@@ -99,15 +98,15 @@ def pretrain_seed(
             resume_path=resume,
             run_id=fingerprint(logged),
             progress=progress,
-            on_log=lambda step, loss: mlflow.log_metric("train_loss", loss, step=step),
+            on_log=lambda step, loss: run.log_metric("train_loss", loss, step=step),
             compiled=params.compile.training,
         )
         out = root / model_dir(task.name, 0, seed)
         save_bundle(out, bundle)
         curve = out / "train_loss.png"
         save_loss_curve(history, curve)
-        mlflow.log_artifacts(str(out), artifact_path="checkpoint")  # weights, config and the loss curve
-        log_model(bundle.ema, out, task.name, "phase0", seed, seed == params.seeds[0], {"stage": "pretrain"})
+        run.log_artifacts(str(out), artifact_path="checkpoint")  # weights, config and the loss curve
+        run.log_model(bundle.ema, out, task.name, "phase0", seed, seed == params.seeds[0], {"stage": "pretrain"})
     if family.uses_value_function:
         run_value(params, task.name, root, device, seed, progress=progress)
     return out

@@ -4,15 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import mlflow
-
 from adaptdiffuser.config import Params
 from adaptdiffuser.contract import TaskFiles
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.io import write_json
 from adaptdiffuser.layout import reference_path
-from adaptdiffuser.tooling.mlflow_logging import flatten, stage_run
+from adaptdiffuser.tooling.run_records import flatten, stage_run
 
 
 def run_reference(params: Params, task_name: str, root: Path, progress: bool = True) -> dict:
@@ -20,10 +18,10 @@ def run_reference(params: Params, task_name: str, root: Path, progress: bool = T
     task = params.resolve(task_name)
     family = get_family(task.family)
     logged = {"task": task.section("settings"), "evaluate": task.section("evaluate")}
-    with stage_run(task.name, "reference", 0, logged, root):
+    with stage_run(task.name, "reference", 0, logged, root) as run:
         ref = family.reference(task, TaskFiles(root, task.name), progress)
         if not ref["r_max"] > ref["r_min"]:
             raise StageError(f"reference of {task.name}: R_max {ref['r_max']} does not exceed R_min {ref['r_min']}")
         write_json(root / reference_path(task.name), ref)
-        mlflow.log_metrics({k: v for k, v in flatten(ref).items() if isinstance(v, float)})
+        run.log_metrics({k: v for k, v in flatten(ref).items() if isinstance(v, float)})
     return ref

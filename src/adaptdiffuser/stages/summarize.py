@@ -5,8 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import mlflow
-
 from adaptdiffuser.config import Params
 from adaptdiffuser.config.params import unseen_task_of
 from adaptdiffuser.evaluation import standard_error
@@ -20,7 +18,7 @@ from adaptdiffuser.layout import (
     unseen_metrics_path,
 )
 from adaptdiffuser.stages.common import GAIN_KEYS, phase_entries, unseen_scores
-from adaptdiffuser.tooling.mlflow_logging import set_best_alias, stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 
 SUMMARY_DISCRIMINATOR_KEYS = ("generated", "kept", "kept_fraction", "tracking_error_mean", "return_mean_kept")
 PER_SEED_KEYS = ("score_mean", "score_stderr", "gain_mean", "gain_stderr")
@@ -90,11 +88,17 @@ def task_phases(params: Params, task: str) -> list[int]:
 
 def run_summarize(params: Params, root: Path) -> dict:
     """The summary of :func:`build_summary`, written to ``metrics/summary.json`` and logged to MLflow (a run per
-    task)."""
+    task), with every pending run record of the pipeline run (see
+    :func:`~adaptdiffuser.tooling.mlflow_logging.log_pending`)."""
     summary = build_summary(params, root)
     write_json(root / SUMMARY, summary)
-    for task, entry in summary.items():
-        log_evolution(task, entry, root)
+    try:
+        for task, entry in summary.items():
+            log_evolution(task, entry, root)
+    finally:  # the pipeline run's last stage logs its stages' run records to MLflow, this one's included
+        from adaptdiffuser.tooling.mlflow_logging import log_pending
+
+        log_pending(root)
     return summary
 
 
@@ -152,12 +156,13 @@ def log_evolution(task: str, entry: dict, root: Path) -> None:
     step k = phase: ``score`` (and ``score_stderr``), and for evolution phases ``control`` and ``gain``; the
     registered model's alias ``best`` moves to the phase with the highest score (tag ``best_phase``)."""
     phases = dict(phase_entries(entry))
-    with stage_run(task, "summarize", None, {"phases": ",".join(map(str, sorted(phases)))}, root):
+    with stage_run(task, "summarize", None, {"phases": ",".join(map(str, sorted(phases)))}, root) as run:
         for k, phase in sorted(phases.items()):
-            mlflow.log_metric("score", phase["score_mean"], step=k)
-            mlflow.log_metric("score_stderr", phase["score_stderr"], step=k)
+            run.log_metric("score", phase["score_mean"], step=k)
+            run.log_metric("score_stderr", phase["score_stderr"], step=k)
             if "control" in phase:
-                mlflow.log_metric("control", phase["control"]["score_mean"], step=k)
-                mlflow.log_metric("gain", phase["gain_mean"], step=k)
+                run.log_metric("control", phase["control"]["score_mean"], step=k)
+                run.log_metric("gain", phase["gain_mean"], step=k)
         best = max(phases, key=lambda k: phases[k]["score_mean"])
-        mlflow.set_tags({"best_phase": str(best), "best_model_version": str(set_best_alias(task, best))})
+        run.set_tags({"best_phase": str(best)})
+        run.set_best_alias(task, best)  # and the tag ``best_model_version``

@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import mlflow
 import numpy as np
 import torch
 
@@ -22,7 +21,7 @@ from adaptdiffuser.layout import model_dir, value_dir, value_resume_path
 from adaptdiffuser.models.value_network import ValueNetwork
 from adaptdiffuser.plots import save_loss_curve
 from adaptdiffuser.stages.training_data import code_digest, expert_training_data, pretrain_config
-from adaptdiffuser.tooling.mlflow_logging import stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 from adaptdiffuser.training import LogFn, fingerprint
 from adaptdiffuser.value_training import heldout_r2, save_value, train_value
 
@@ -118,19 +117,19 @@ def run_value(
     }
     resume = root / value_resume_path(task.name, seed)
     resume.parent.mkdir(parents=True, exist_ok=True)
-    with stage_run(task.name, "value", 0, logged, root, seed=seed):
+    with stage_run(task.name, "value", 0, logged, root, seed=seed) as run:
         net, fit, history = fit_value(
             task, bundle, traj, seed, device, progress,
-            on_log=lambda step, loss: mlflow.log_metric("value_loss", loss, step=step),
+            on_log=lambda step, loss: run.log_metric("value_loss", loss, step=step),
             resume_path=resume, run_id=value_run_id(task, logged, seed),
         )  # fmt: skip
-        mlflow.log_metrics({"windows": fit.pop("training_windows"), "parameters": fit.pop("parameters")})
+        run.log_metrics({"windows": fit.pop("training_windows"), "parameters": fit.pop("parameters")})
         if fit["heldout_episodes"]:
-            mlflow.log_metrics({"value_heldout_r2": fit["r2"], "value_heldout_r2_t0": fit["r2_t0"]})
+            run.log_metrics({"value_heldout_r2": fit["r2"], "value_heldout_r2_t0": fit["r2_t0"]})
         out = root / value_dir(task.name, seed)
         info = {"settings": settings.model_dump(), "task": task.name, "data": data, "heldout": fit}
         save_value(out, net.cpu(), info)
         curve = out / "value_loss.png"  # written after the atomic folder exists
         save_loss_curve(history, curve)
-        mlflow.log_artifacts(str(out), artifact_path="value")
+        run.log_artifacts(str(out), artifact_path="value")
     return out

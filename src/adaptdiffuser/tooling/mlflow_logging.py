@@ -1,11 +1,14 @@
 """MLflow tracking: one experiment per task, one run per stage execution (and training seed), tagged with stage,
 phase and seed, nested under one parent run per pipeline run (:func:`pipeline_run`).
 
+Stages do not import MLflow: they write run records (:mod:`adaptdiffuser.tooling.run_records`) and one process logs
+them here (:func:`log_pending`): the summarize stage at the end of a pipeline run, a sweep worker after each trial,
+``adaptdiffuser mlflow-log`` by hand. Each run keeps its stage's start and end time and status.
+
 Each task's experiment is tagged as a model-training experiment (``mlflow.experimentKind``), so that MLflow 3's UI
 opens it on its runs, not on the GenAI overview. Training stages log the datasets they train on as MLflow dataset
-inputs (:func:`log_dataset`) and their EMA model (:func:`log_model`), registered as a version of
-``adaptdiffuser-<task>`` with the aliases ``phase<k>`` (first training seed), ``phase<k>-seed<s>``,
-``phase<k>-control...``; the summarize stage adds ``best``.
+inputs and their EMA model, registered as a version of ``adaptdiffuser-<task>`` with the aliases ``phase<k>``
+(first training seed), ``phase<k>-seed<s>``, ``phase<k>-control...``; the summarize stage adds ``best``.
 
 The tracking URI defaults to ``sqlite:///<repo>/mlflow.db`` (``MLFLOW_TRACKING_URI`` overrides it) and each
 experiment stores artifacts under an explicit absolute location, ``<repo>/mlartifacts/<task>``. A stage that
@@ -18,121 +21,65 @@ Secrets never reach MLflow: every param and tag goes through :func:`redact` (the
 
 from __future__ import annotations
 
-import hashlib
+import fcntl
 import logging
 import os
-import re
-import subprocess
-from collections.abc import Iterator, Mapping
+import shutil
+from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
 import mlflow
-import yaml
-from mlflow.entities import Param
+from mlflow.entities import DatasetInput, InputTag, Metric, Param
 from mlflow.exceptions import MlflowException
 from mlflow.tracking import MlflowClient
 
-#: set by a sweep worker to the MLflow run id of the current trial
-PARENT_RUN_ENV = "ADAPTDIFFUSER_PARENT_RUN_ID"
-#: names the pipeline run (parent run) the stages nest under, overriding the rule of :func:`pipeline_identity`
-PIPELINE_RUN_ENV = "ADAPTDIFFUSER_PIPELINE_RUN"
+from adaptdiffuser.tooling.run_records import (
+    PARENT_RUN_ENV,
+    PENDING,
+    PIPELINE_KEY_TAG,
+    PIPELINE_RUN_ENV,
+    PIPELINE_STAGE,
+    REDACTED,
+    flatten,
+    git_commit,
+    is_secret_key,
+    loggable,
+    params_digest,
+    pending_records,
+    pending_root,
+    pipeline_identity,
+    pipeline_record,
+    project_root,
+    read_record,
+    redact,
+    redact_text,
+    stage_run,
+)
+
+__all__ = [
+    "EXPERIMENT_KIND", "EXPERIMENT_KIND_TAG", "PARENT_RUN_ENV", "PENDING", "PIPELINE_KEY_TAG", "PIPELINE_RUN_ENV",
+    "PIPELINE_STAGE", "RECORD_ID_TAG", "REDACTED", "ensure_experiment", "flatten", "git_commit", "is_secret_key",
+    "log_pending", "loggable", "params_digest", "pipeline_identity", "pipeline_run", "project_root", "redact",
+    "redact_text", "registered_model_name", "set_best_alias", "stage_run", "stage_times", "tracking_uri",
+]  # fmt: skip
+
 #: the experiment tag MLflow 3's UI reads to choose between its GenAI and its model-training views
 EXPERIMENT_KIND_TAG = "mlflow.experimentKind"
 EXPERIMENT_KIND = "custom_model_development"
-#: the tag that finds a pipeline run's parent run again from the next stage's process
-PIPELINE_KEY_TAG = "pipeline_key"
-#: the ``stage`` tag of a pipeline's parent run
-PIPELINE_STAGE = "pipeline"
-
-#: what a secret is replaced with
-REDACTED = "***"
-_SECRET_WORDS = r"(?:password|passwd|token|secret|api[_-]?key)"
-#: a key whose value is a secret (any case, anywhere in the key: ``db_password``, ``sweep.API_KEY``)
-_SECRET_KEY = re.compile(_SECRET_WORDS, re.IGNORECASE)
-#: ``scheme://user:PASSWORD@``: masked up to the last ``@`` of the URL, so that an unescaped ``@`` or ``/`` in the
-#: password is masked too, whichever ``@`` a parser (SQLAlchemy: the first, urllib and libpq: the last of the
-#: authority) takes as its end
-_URL_PASSWORD = re.compile(r"(?P<head>\b[A-Za-z][A-Za-z0-9+.\-]*://[^\s:/?#@'\"]*:)[^\s'\"<>]*@")
-#: ``password=...``, ``token: ...``, ``"api_key": "..."`` inside text (query strings, libpq DSNs, YAML, JSON)
-_SECRET_PAIR = re.compile(
-    rf"(?P<head>[\w.\-]*{_SECRET_WORDS}[\w.\-]*['\"]?\s*[=:]\s*['\"]?)[^\s&;,'\"]+", re.IGNORECASE
-)
-
-
-def is_secret_key(key: str) -> bool:
-    """Whether a param or tag named ``key`` holds a secret (``*password*``, ``*token*``, ``*secret*``,
-    ``*api_key*``, any case)."""
-    return _SECRET_KEY.search(key) is not None
-
-
-def redact_text(text: str) -> str:
-    """``text`` with URL passwords (``scheme://user:***@host``) and secret ``key=value`` pairs masked."""
-    text = _URL_PASSWORD.sub(lambda m: f"{m['head']}{REDACTED}@", text)
-    return _SECRET_PAIR.sub(lambda m: f"{m['head']}{REDACTED}", text)
-
-
-def redact(key: str, value: Any) -> Any:
-    """``value`` as it may be logged under ``key``: :data:`REDACTED` when the key names a secret, strings masked
-    by :func:`redact_text`, mappings and lists redacted item by item, anything else unchanged."""
-    if is_secret_key(key) and value not in (None, ""):
-        return REDACTED
-    if isinstance(value, str):
-        return redact_text(value)
-    if isinstance(value, Mapping):
-        return {k: redact(str(k), v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [redact(key, v) for v in value]
-    return value
-
-
-def loggable(params: Mapping[str, Any], limit: int = 500) -> dict[str, str]:
-    """Params as MLflow strings: redacted first (a cut could split a password from its URL), then cut to
-    ``limit`` characters."""
-    return {key: str(redact(key, value))[:limit] for key, value in params.items()}
-
-
-def log_params(params: Mapping[str, Any]) -> None:
-    """Log params (redacted, see :func:`loggable`) to the active MLflow run."""
-    mlflow.log_params(loggable(params))
-
-
-def project_root(root: Path) -> Path:
-    """Where the project's MLflow store lives: ``root``, or the repository DVC names in ``DVC_ROOT`` when it differs
-    (a queued ``dvc exp run`` executes in a temporary copy that is deleted afterwards; DVC points ``DVC_ROOT`` at
-    the repository it came from)."""
-    dvc_root = os.environ.get("DVC_ROOT")
-    return Path(dvc_root) if dvc_root else root
+#: the tag naming the run record a stage run was logged from (:func:`log_pending` finds a half-logged run by it)
+RECORD_ID_TAG = "record_id"
+#: the lock file (in the pending folder) that makes one process at a time log the pending records
+LOCK_FILE = ".lock"
+_BATCH = 500  # metrics or params per ``log_batch`` call (MLflow takes at most 1000 metrics, 100 params)
+_DATASET_CONTEXT = "mlflow.data.context"
 
 
 def tracking_uri(root: Path) -> str:
     """The tracking URI in effect for a project rooted at ``root``: ``MLFLOW_TRACKING_URI`` when set, else the
     sqlite file of :func:`project_root`."""
     return os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{(project_root(root) / 'mlflow.db').resolve()}"
-
-
-def git_commit(root: Path) -> str:
-    """The current git commit of ``root``, or ``unknown`` outside a repository."""
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, check=True, timeout=10
-        )
-        return out.stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-def flatten(params: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}`` for MLflow params."""
-    flat: dict[str, Any] = {}
-    for key, value in params.items():
-        name = f"{prefix}{key}"
-        if isinstance(value, dict):
-            flat.update(flatten(value, f"{name}."))
-        else:
-            flat[name] = value
-    return flat
 
 
 def ensure_experiment(task: str, root: Path) -> str:
@@ -160,41 +107,17 @@ def ensure_experiment(task: str, root: Path) -> str:
     return experiment.experiment_id
 
 
-def params_digest(root: Path) -> str:
-    """The first 12 hex digits of the SHA-256 of ``root/params.yaml`` (``none`` without one)."""
-    path = root / "params.yaml"
-    return hashlib.sha256(path.read_bytes()).hexdigest()[:12] if path.is_file() else "none"
-
-
-def pipeline_identity(root: Path) -> tuple[str, str, dict[str, str]]:
-    """``(key, run name, tags)`` of the pipeline run a stage belongs to. The rule, first match:
-
-    1. ``ADAPTDIFFUSER_PIPELINE_RUN`` set: that name (a user's own grouping);
-    2. ``DVC_EXP_NAME`` set (``dvc exp run``): the DVC experiment, with its baseline commit (``DVC_EXP_BASELINE_REV``);
-    3. otherwise (``dvc repro``, a stage run by hand): the git commit and the digest of ``params.yaml``.
-
-    The key is a digest of that identity (no secret in a name reaches it)."""
-    commit, digest = git_commit(root), params_digest(root)
-    tags = {"git_commit": commit, "params_digest": digest}
-    if os.environ.get(PIPELINE_RUN_ENV):
-        name = os.environ[PIPELINE_RUN_ENV]
-        identity = f"name:{name}"
-    elif os.environ.get("DVC_EXP_NAME"):
-        exp, baseline = os.environ["DVC_EXP_NAME"], os.environ.get("DVC_EXP_BASELINE_REV", "")
-        identity, name = f"dvc-exp:{baseline}:{exp}", f"exp-{exp}"
-        tags |= {"dvc_exp_name": exp, "dvc_baseline_rev": baseline}
-    else:
-        identity, name = f"repro:{commit}:{digest}", f"repro-{commit[:7]}-params-{digest[:6]}"
-    return hashlib.sha256(identity.encode()).hexdigest()[:16], name, tags
-
-
-def pipeline_run(experiment_id: str, root: Path) -> str:
-    """The id of the parent run of this pipeline run in the experiment (see :func:`pipeline_identity`): found by its
-    :data:`PIPELINE_KEY_TAG`, else created (tags ``stage=pipeline``, the commit, the params digest and the DVC
-    experiment; ``params.yaml`` as params). Stages run in separate processes, one after another; should two create
-    it at once, the older run wins and the other is deleted."""
+def pipeline_run(
+    experiment_id: str, root: Path, pipeline: dict[str, Any] | None = None, start_ms: int | None = None
+) -> str:
+    """The id of the parent run of a pipeline run in the experiment (``pipeline``: as a record holds it, see
+    :func:`~adaptdiffuser.tooling.run_records.pipeline_record`; by default this one's at ``root``): found by its
+    :data:`PIPELINE_KEY_TAG`, else created (started at ``start_ms``; tags ``stage=pipeline``, the commit, the params
+    digest and the DVC experiment; ``params.yaml`` as params). Should two processes create it at once, the older run
+    wins and the other is deleted."""
     client = MlflowClient()
-    key, name, tags = pipeline_identity(root)
+    pipeline = pipeline or pipeline_record(root)
+    key, tags = pipeline["key"], dict(pipeline["tags"])
     query = f"tags.{PIPELINE_KEY_TAG} = '{key}'"
 
     def oldest() -> list:
@@ -208,93 +131,93 @@ def pipeline_run(experiment_id: str, root: Path) -> str:
         f"Key {key}: {', '.join(f'{k}={v}' for k, v in tags.items())}."
     )
     tags |= {"stage": PIPELINE_STAGE, PIPELINE_KEY_TAG: key, "mlflow.note.content": note}
-    run = client.create_run(experiment_id, run_name=redact_text(name), tags=loggable(tags, 5000))
+    run = client.create_run(experiment_id, start_time=start_ms, run_name=pipeline["name"], tags=loggable(tags, 5000))
     run_id = run.info.run_id
     winner = oldest()[0].info.run_id
     if winner != run_id:
         client.delete_run(run_id)
         return winner
-    path = root / "params.yaml"
-    raw = yaml.safe_load(path.read_text()) if path.is_file() else None
-    if isinstance(raw, dict):
-        logged = loggable(flatten(raw))
-        for start in range(0, len(logged), 100):
-            chunk = list(logged.items())[start : start + 100]
-            client.log_batch(run_id, params=[Param(k, v) for k, v in chunk])
+    items = list(pipeline["params"].items())
+    for start in range(0, len(items), 100):
+        client.log_batch(run_id, params=[Param(k, v) for k, v in items[start : start + 100]])
     return run_id
 
 
-def stage_times(root: Path) -> list[dict[str, Any]]:
-    """How long each stage run of this pipeline run took (:func:`pipeline_identity` at ``root``: this commit and
-    params.yaml), over every task's experiment, in the order they started: task, run name, status, seconds."""
+def log_pending(root: Path) -> dict[str, str]:
+    """Log every pending run record of the project at ``root`` (:func:`~adaptdiffuser.tooling.run_records.stage_run`)
+    to MLflow, oldest first, as the stage would have logged it itself; returns ``{record id: run id}``.
+
+    One process at a time (an exclusive lock on ``mlflow-pending/.lock``: two queue workers may finish at once). A
+    record is deleted only once it is fully logged; a run that a crash left half-logged (found by its
+    :data:`RECORD_ID_TAG`, its end time not yet the record's) is deleted with its model versions and logged again."""
     root = root.resolve()
+    folder = pending_root(root)
+    if not pending_records(root):
+        return {}
     mlflow.set_tracking_uri(tracking_uri(root))
+    logged: dict[str, str] = {}
+    with open(folder / LOCK_FILE, "a") as lock, _quiet_model_logging():
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            for record in pending_records(root):  # again under the lock: another process may have logged some
+                logged[record.name] = _log_record(record, root)
+                done = record.with_name(f".{record.name}.done")
+                os.replace(record, done)  # gone from the pending records at once, then deleted
+                shutil.rmtree(done)
+            for leftover in folder.glob(".*.done"):  # a deletion that a crash interrupted
+                shutil.rmtree(leftover, ignore_errors=True)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return logged
+
+
+def _log_record(folder: Path, root: Path) -> str:
+    """Log the record in ``folder`` as one MLflow run (see :func:`log_pending`); its run id."""
+    record = read_record(folder)
     client = MlflowClient()
-    key = pipeline_identity(root)[0]
-    rows = []
-    for experiment in client.search_experiments():
-        parents = client.search_runs([experiment.experiment_id], f"tags.{PIPELINE_KEY_TAG} = '{key}'")
-        for parent in parents:
-            query = f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
-            for run in client.search_runs([experiment.experiment_id], query, max_results=10_000):
-                end = run.info.end_time or run.info.start_time
-                seconds = (end - run.info.start_time) / 1000
-                rows.append({"task": experiment.name, "run": run.info.run_name, "status": run.info.status,
-                             "start": run.info.start_time, "seconds": seconds})  # fmt: skip
-    return sorted(rows, key=lambda row: row["start"])
+    experiment_id = ensure_experiment(record["task"], root)
+    for run in client.search_runs([experiment_id], f"tags.{RECORD_ID_TAG} = '{record['id']}'"):
+        if run.info.end_time == record["end_ms"] and run.info.status == record["status"]:
+            return run.info.run_id  # logged whole before a crash: only the record was left to delete
+        for version in client.search_model_versions(f"run_id = '{run.info.run_id}'"):
+            client.delete_model_version(version.name, version.version)
+        client.delete_run(run.info.run_id)
+    tags = {**record["tags"], RECORD_ID_TAG: record["id"]}
+    parent = record["parent_run_id"]
+    if parent is None:
+        parent = pipeline_run(experiment_id, root, record["pipeline"], record["start_ms"])
+        client.update_run(parent, status="RUNNING")
+    tags["mlflow.parentRunId"] = parent
+    run_id = client.create_run(
+        experiment_id, start_time=record["start_ms"], run_name=record["run_name"], tags=tags
+    ).info.run_id
+    params = [Param(k, v) for k, v in record["params"].items()]
+    metrics = [Metric(m["key"], m["value"], m["timestamp"], m["step"]) for m in record["metrics"]]
+    for start in range(0, max(len(params), len(metrics)), _BATCH):
+        client.log_batch(run_id, metrics=metrics[start : start + _BATCH], params=params[start : start + _BATCH])
+    if record["datasets"]:
+        client.log_inputs(run_id, datasets=[_dataset_input(d) for d in record["datasets"]])
+    if (folder / "artifacts").is_dir():
+        client.log_artifacts(run_id, str(folder / "artifacts"))
+    for model in record["models"]:
+        _log_model(folder / model["folder"], model, run_id)
+    if record["best_alias"] is not None:
+        best = record["best_alias"]
+        client.set_tag(run_id, "best_model_version", str(set_best_alias(best["task"], best["phase"])))
+    client.set_terminated(run_id, record["status"], end_time=record["end_ms"])
+    if record["parent_run_id"] is None:
+        client.set_terminated(parent, record["status"], end_time=record["end_ms"])
+    return run_id
 
 
-@contextmanager
-def stage_run(
-    task: str,
-    stage: str,
-    phase: int | None,
-    params: dict[str, Any],
-    root: Path = Path("."),
-    seed: int | str | None = None,
-) -> Iterator[Any]:
-    """An MLflow run for one stage execution (for one training seed, when given; ``seed`` tag and a ``-seed<s>``
-    run name; ``phase`` None: a stage over every phase, tag ``phase=all``), nested under the pipeline's parent run
-    (:func:`pipeline_run`; a sweep trial's run inside a sweep). FAILED if the body raises, and so is the parent
-    (FINISHED again when a later stage succeeds)."""
-    root = root.resolve()
-    mlflow.set_tracking_uri(tracking_uri(root))
-    experiment_id = ensure_experiment(task, root)
-    tags = {"stage": stage, "phase": "all" if phase is None else str(phase), "task": task}
-    tags["git_commit"] = git_commit(root)
-    name = stage if phase is None else f"{stage}-phase{phase}"
-    if seed is not None:
-        tags["seed"] = str(seed)
-        name += f"-seed{seed}"
-    if os.environ.get("DVC_EXP_NAME"):
-        tags["dvc_exp_name"] = os.environ["DVC_EXP_NAME"]
-    parent = None
-    if os.environ.get(PARENT_RUN_ENV):  # a sweep trial: nest the stage's run under the trial's run
-        tags["mlflow.parentRunId"] = os.environ[PARENT_RUN_ENV]
-    else:
-        parent = tags["mlflow.parentRunId"] = pipeline_run(experiment_id, root)
-        MlflowClient().update_run(parent, status="RUNNING")
-    status = "FAILED"
-    try:
-        with mlflow.start_run(experiment_id=experiment_id, run_name=name, tags=loggable(tags, 5000)) as run:
-            log_params(flatten(params))
-            yield run
-        status = "FINISHED"
-    finally:
-        if parent is not None:
-            MlflowClient().set_terminated(parent, status)
-
-
-def log_dataset(path: Path, sha256: str, context: str, name: str) -> None:
-    """Log the Parquet file ``path`` as a dataset input of the active run (an MLflow ``MetaDataset``: its name, its
-    file as source and the first 32 hex digits of its SHA-256 as digest; nothing is read), in ``context``
-    (``training``, ``synthetic-phase<j>``...)."""
+def _dataset_input(dataset: dict[str, str]) -> DatasetInput:
+    """A recorded dataset as MLflow's ``MetaDataset`` input (its file as a local artifact source)."""
     from mlflow.data.dataset_source_registry import get_registered_sources
     from mlflow.data.meta_dataset import MetaDataset
 
     local = next(cls for cls in get_registered_sources() if cls.__name__ == "LocalArtifactDatasetSource")
-    dataset = MetaDataset(local(path.resolve().as_uri()), name=name, digest=sha256[:32])
-    mlflow.log_input(dataset, context=context)
+    meta = MetaDataset(local(dataset["source"]), name=dataset["name"], digest=dataset["digest"])
+    return DatasetInput(meta._to_mlflow_entity(), tags=[InputTag(_DATASET_CONTEXT, dataset["context"])])
 
 
 def registered_model_name(task: str) -> str:
@@ -302,32 +225,31 @@ def registered_model_name(task: str) -> str:
     return f"adaptdiffuser-{task}"
 
 
-def log_model(
-    model: Any, bundle_dir: Path, task: str, label: str, seed: int, primary: bool, tags: dict[str, str]
-) -> str | None:
-    """Log ``model`` (a torch module: the EMA diffusion model, its U-Net in ``.model``) to the active run with
-    ``mlflow.pytorch`` (pickled, on the CPU; the ``config.json`` and ``normalizer.json`` of its checkpoint folder
-    ``bundle_dir`` beside it), so that
+def _log_model(folder: Path, model: dict[str, Any], run_id: str) -> None:
+    """Log a recorded model (a pickled torch module, see :meth:`StageRecord.log_model`) to the run ``run_id`` with
+    ``mlflow.pytorch`` (pickled; its ``config.json`` and ``normalizer.json`` beside it), so that
     ``mlflow.pytorch.load_model`` gives it back; register it as a version of :func:`registered_model_name` with
-    the aliases ``<label>-seed<s>`` and, for the ``primary`` (first) training seed, ``<label>`` (``phase1``,
-    ``phase1-control``). Returns the version, or None inside a sweep trial (logged, not registered: trials must
-    not move the aliases)."""
-    import copy
+    the aliases ``<label>-seed<s>`` and, for the ``primary`` (first) training seed, ``<label>``; a sweep trial's
+    model is logged, not registered."""
     from importlib.metadata import version as package_version
 
     import mlflow.pytorch
+    import torch
 
-    with _quiet_model_logging():
+    module = torch.load(folder / "model.pt", map_location="cpu", weights_only=False)
+    mlflow.start_run(run_id=run_id)  # ``mlflow.pytorch.log_model`` logs to the active run
+    try:
         info = mlflow.pytorch.log_model(
-            copy.deepcopy(model).to("cpu"),
+            module,
             name="model",
             serialization_format="pickle",
             pip_requirements=[f"torch=={package_version('torch')}"],  # no inference (it imports the model again)
-            extra_files=[str(bundle_dir / name) for name in ("config.json", "normalizer.json")],
+            extra_files=[str(folder / name) for name in model["extra_files"]],
         )
-        if os.environ.get(PARENT_RUN_ENV):
-            return None
-        return _register(info, task, label, seed, primary, tags)
+    finally:
+        mlflow.end_run(status="RUNNING")  # the record's own status and end time are set last
+    if model["register"]:
+        _register(info, run_id, model)
 
 
 @contextmanager
@@ -348,21 +270,22 @@ def _quiet_model_logging() -> Iterator[None]:
             os.environ["MLFLOW_ENABLE_ARTIFACTS_PROGRESS_BAR"] = bar
 
 
-def _register(info: Any, task: str, label: str, seed: int, primary: bool, tags: dict[str, str]) -> str:
-    """Register the logged model ``info`` as a new version of the task's model, with its aliases."""
+def _register(info: Any, run_id: str, model: dict[str, Any]) -> str:
+    """Register the logged model ``info`` (of the run ``run_id``) as a new version of the task's model, with its
+    aliases."""
     client = MlflowClient()
-    name = registered_model_name(task)
+    name = registered_model_name(model["task"])
     try:
         client.get_registered_model(name)
     except MlflowException:
         with suppress(MlflowException):  # created meanwhile
-            client.create_registered_model(name, description=f"AdaptDiffuser's EMA diffusion models of {task}")
-    run_id = mlflow.active_run().info.run_id
-    tags = loggable({"task": task, "label": label, "seed": seed, **tags})
-    created = client.create_model_version(name, info.model_uri, run_id=run_id, tags=tags, model_id=info.model_id)
-    client.set_registered_model_alias(name, f"{label}-seed{seed}", created.version)
-    if primary:
-        client.set_registered_model_alias(name, label, created.version)
+            client.create_registered_model(name, description=f"AdaptDiffuser's EMA diffusion models of {model['task']}")
+    created = client.create_model_version(
+        name, info.model_uri, run_id=run_id, tags=model["tags"], model_id=info.model_id
+    )
+    client.set_registered_model_alias(name, f"{model['label']}-seed{model['seed']}", created.version)
+    if model["primary"]:
+        client.set_registered_model_alias(name, model["label"], created.version)
     return created.version
 
 
@@ -379,16 +302,23 @@ def set_best_alias(task: str, phase: int) -> str | None:
     return version
 
 
-def log_over_seeds(task: str, stage: str, phase: int, metrics: dict[str, Any], root: Path = Path(".")) -> None:
-    """With several training seeds, one more run (``<stage>-phase<k>-seedall``, tag ``seed=all``) holding the
-    aggregate of a stage's per-seed metrics (see :func:`adaptdiffuser.seed_metrics.over_seeds`)."""
-    if metrics.get("n_seeds", 1) < 2:
-        return
-    numbers = {
-        k: float(v)
-        for k, v in flatten({k: v for k, v in metrics.items() if k != "seeds"}).items()
-        if isinstance(v, int | float) and not isinstance(v, bool)
-    }
-    seeds = ",".join(metrics["seeds"])
-    with stage_run(task, stage, phase, {"seeds": seeds}, root, seed="all"):
-        mlflow.log_metrics(numbers)
+def stage_times(root: Path) -> list[dict[str, Any]]:
+    """How long each stage run of this pipeline run took (:func:`pipeline_identity` at ``root``: this commit and
+    params.yaml), over every task's experiment, in the order they started: task, run name, status, seconds. Pending
+    run records are logged first."""
+    root = root.resolve()
+    log_pending(root)
+    mlflow.set_tracking_uri(tracking_uri(root))
+    client = MlflowClient()
+    key = pipeline_identity(root)[0]
+    rows = []
+    for experiment in client.search_experiments():
+        parents = client.search_runs([experiment.experiment_id], f"tags.{PIPELINE_KEY_TAG} = '{key}'")
+        for parent in parents:
+            query = f"tags.mlflow.parentRunId = '{parent.info.run_id}'"
+            for run in client.search_runs([experiment.experiment_id], query, max_results=10_000):
+                end = run.info.end_time or run.info.start_time
+                seconds = (end - run.info.start_time) / 1000
+                rows.append({"task": experiment.name, "run": run.info.run_name, "status": run.info.status,
+                             "start": run.info.start_time, "seconds": seconds})  # fmt: skip
+    return sorted(rows, key=lambda row: row["start"])

@@ -121,7 +121,7 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
     import torch
     from mlflow.tracking import MlflowClient
 
-    from adaptdiffuser.tooling.mlflow_logging import ensure_experiment
+    from adaptdiffuser.tooling.mlflow_logging import ensure_experiment, log_pending
 
     torch.set_num_threads(ctx.threads)
     os.environ["MLFLOW_TRACKING_URI"] = ctx.tracking_uri
@@ -162,8 +162,8 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
             if trial.should_prune():
                 raise optuna.TrialPruned(f"phase {k}: objective {value:.2f} is below the running median")
 
+        trial_dir = ctx.root / "sweeps" / study_name / f"trial_{trial.number}"
         try:
-            trial_dir = ctx.root / "sweeps" / study_name / f"trial_{trial.number}"
             value = run_trial(raw, sweep, ctx.root, trial_dir, ctx.device, report, threads=ctx.threads)
             client.log_metric(run_id, "final_objective", value)
             status = "FINISHED"
@@ -174,6 +174,7 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
             raise
         finally:
             os.environ.pop(PARENT_RUN_ENV, None)
+            log_pending(trial_dir)  # the run records of the trial's stages, nested under the trial's run
             client.set_terminated(run_id, status)
 
     study.optimize(objective, n_trials=n_trials, catch=(StageError,))

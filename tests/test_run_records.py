@@ -1,0 +1,197 @@
+"""Stage run records (:mod:`adaptdiffuser.tooling.run_records`) logged to a real MLflow SQLite store by
+:func:`~adaptdiffuser.tooling.mlflow_logging.log_pending`: the run a stage used to log itself, once, with a crash
+halfway through neither losing nor doubling a record; and a stage that imports no MLflow."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import mlflow
+import mlflow.pytorch
+import pytest
+import torch
+from mlflow.tracking import MlflowClient
+
+from adaptdiffuser.tooling.mlflow_logging import RECORD_ID_TAG, _log_record, log_pending, registered_model_name
+from adaptdiffuser.tooling.run_records import (
+    PARENT_RUN_ENV,
+    PENDING,
+    PIPELINE_RUN_ENV,
+    pending_records,
+    read_record,
+    stage_run,
+)
+
+TASK = "maze2d-umaze"
+
+
+@pytest.fixture
+def store(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> MlflowClient:
+    """A project folder with params.yaml and its own SQLite store (``MLFLOW_TRACKING_URI``)."""
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+    for name in ("DVC_EXP_NAME", "DVC_ROOT", PIPELINE_RUN_ENV, PARENT_RUN_ENV):
+        monkeypatch.delenv(name, raising=False)
+    (tmp_path / "params.yaml").write_text("alpha: 1\nsweep: {storage: 'postgresql://u:hunter2@db/x'}\n")
+    yield MlflowClient(uri)
+    mlflow.set_tracking_uri(None)
+
+
+def _pretrain(root: Path, model: torch.nn.Module) -> str:
+    """Record a pretrain-like stage run in ``root``: params, a loss curve, files, a dataset and a model."""
+    out = root / "models" / "seed0"
+    out.mkdir(parents=True)
+    (out / "config.json").write_text("{}")
+    (out / "normalizer.json").write_text("{}")
+    (root / "plan.png").write_bytes(b"png")
+    with stage_run(TASK, "pretrain", 0, {"pretrain": {"steps": 20}, "db_password": "hunter2"}, root, seed=0) as run:
+        run.log_dataset(root / "data.parquet", "ab" * 32, "training", "data/dataset.parquet")
+        for step in (5, 10):
+            run.log_metric("train_loss", 1.0 / step, step=step)
+        run.log_metrics({"windows": 7})
+        run.log_artifacts(out, artifact_path="checkpoint")
+        run.log_artifact(root / "plan.png", artifact_path="plans")
+        run.log_model(model, out, TASK, "phase0", 0, True, {"stage": "pretrain"})
+    (root / "plan.png").unlink()  # an output a later stage replaces: the record kept its own copy
+    return run.id
+
+
+def test_a_logged_record_is_the_run_the_stage_logged_before_and_is_logged_once(
+    store: MlflowClient, tmp_path: Path
+) -> None:
+    model = torch.nn.Linear(3, 2)
+    pretrain_id = _pretrain(tmp_path, model)
+    with stage_run(TASK, "summarize", None, {"phases": "0"}, tmp_path) as run:
+        run.log_metric("score", 12.5, step=0)
+        run.set_tags({"best_phase": "0"})
+        run.set_best_alias(TASK, 0)
+    record = read_record(pending_records(tmp_path)[0])
+    assert "hunter2" not in json.dumps(record) and record["status"] == "FINISHED"
+
+    logged = log_pending(tmp_path)
+    assert list(logged) == [pretrain_id, run.id] and pending_records(tmp_path) == []
+    experiment = store.get_experiment_by_name(TASK)
+    pretrain = store.get_run(logged[pretrain_id])
+    assert pretrain.info.status == "FINISHED" and pretrain.info.run_name == "pretrain-phase0-seed0"
+    assert pretrain.info.start_time == record["start_ms"] and pretrain.info.end_time == record["end_ms"]
+    assert pretrain.data.params["pretrain.steps"] == "20" and pretrain.data.params["db_password"] == "***"
+    assert pretrain.data.tags["stage"] == "pretrain" and pretrain.data.tags["seed"] == "0"
+    assert pretrain.data.tags[RECORD_ID_TAG] == pretrain_id
+    assert [(m.step, m.value) for m in store.get_metric_history(pretrain.info.run_id, "train_loss")] == [
+        (5, 0.2),
+        (10, 0.1),
+    ]
+    assert pretrain.data.metrics["windows"] == 7
+    files = {a.path for folder in ("checkpoint", "plans") for a in store.list_artifacts(pretrain.info.run_id, folder)}
+    assert files == {"checkpoint/config.json", "checkpoint/normalizer.json", "plans/plan.png"}
+    (dataset,) = pretrain.inputs.dataset_inputs
+    assert dataset.dataset.name == "data/dataset.parquet" and dataset.dataset.digest == "ab" * 16
+    assert {t.key: t.value for t in dataset.tags}["mlflow.data.context"] == "training"
+    # the pipeline's parent run: found by its key, params.yaml redacted, FINISHED with its last stage
+    parent = store.get_run(pretrain.data.tags["mlflow.parentRunId"])
+    assert parent.data.tags["stage"] == "pipeline" and parent.info.status == "FINISHED"
+    assert parent.data.params == {"alpha": "1", "sweep.storage": "postgresql://u:***@db/x"}
+    summarize = store.get_run(logged[run.id])
+    assert summarize.data.tags["mlflow.parentRunId"] == parent.info.run_id
+    # the registered model, its aliases (``best`` from the summarize record), and the model itself
+    name = registered_model_name(TASK)
+    version = store.get_model_version_by_alias(name, "best")
+    assert set(store.get_registered_model(name).aliases) == {"phase0", "phase0-seed0", "best"}
+    assert version.run_id == pretrain.info.run_id and summarize.data.tags["best_model_version"] == str(version.version)
+    loaded = mlflow.pytorch.load_model(f"models:/{name}@best")
+    assert torch.equal(loaded.weight, model.weight)
+
+    assert log_pending(tmp_path) == {}  # nothing twice
+    assert len(store.search_runs([experiment.experiment_id])) == 3
+    assert len(store.search_model_versions(f"name = '{name}'")) == 1
+
+
+def test_a_crash_while_logging_neither_loses_nor_doubles_a_record(store: MlflowClient, tmp_path: Path) -> None:
+    with stage_run(TASK, "collect", 0, {"a": 1}, tmp_path) as run:
+        run.log_metric("m", 1.0)
+    # a flusher killed after creating the run, before its metrics and end: a run with the record's id, half-logged
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    experiment_id = mlflow.create_experiment(TASK)
+    store.create_run(experiment_id, tags={RECORD_ID_TAG: run.id, "stage": "collect"})
+    logged = log_pending(tmp_path)
+    (collect,) = store.search_runs([experiment_id], "tags.stage = 'collect'")
+    assert collect.info.run_id == logged[run.id] and collect.data.metrics == {"m": 1.0}
+    assert collect.info.status == "FINISHED"
+    # a flusher killed after logging the run whole, before deleting the record: the record goes, no second run
+    with stage_run(TASK, "reference", 0, {}, tmp_path) as again:
+        pass
+    (folder,) = pending_records(tmp_path)
+    whole = _log_record(folder, tmp_path)
+    assert log_pending(tmp_path) == {again.id: whole} and pending_records(tmp_path) == []
+    assert len(store.search_runs([experiment_id], "tags.stage = 'reference'")) == 1
+
+
+def test_a_failed_stage_leaves_a_failed_record_and_a_sweep_trial_nests_under_its_trial(
+    store: MlflowClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with pytest.raises(RuntimeError, match="boom"), stage_run(TASK, "pretrain", 0, {}, tmp_path):
+        raise RuntimeError("boom")
+    assert not any(p.name.startswith(".") and p.name != ".lock" for p in (tmp_path / PENDING).iterdir())
+    mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
+    experiment_id = mlflow.create_experiment(TASK)
+    trial = store.create_run(experiment_id, tags={"sweep": "s"}).info.run_id
+    monkeypatch.setenv(PARENT_RUN_ENV, trial)
+    with stage_run(TASK, "generate", 1, {}, tmp_path) as run:
+        pass
+    logged = log_pending(tmp_path)
+    runs = {r.data.tags.get("stage", "trial"): r for r in store.search_runs([experiment_id])}
+    assert runs["pretrain"].info.status == "FAILED" and runs["pipeline"].info.status == "FAILED"
+    assert store.get_run(logged[run.id]).data.tags["mlflow.parentRunId"] == trial
+
+
+def test_importing_a_stage_imports_no_mlflow_and_the_report_stage_no_torch() -> None:
+    """Only the process that logs the records pays for MLflow's import (about 2.7 CPU-s), and a stage that needs no
+    torch does not pay for its import either (about 2.2 CPU-s)."""
+    stages = sorted(p.stem for p in (Path(__file__).parents[1] / "src/adaptdiffuser/stages").glob("[!_]*.py"))
+    code = (
+        "import sys, importlib, adaptdiffuser.cli, adaptdiffuser.stages.report\n"
+        "print('torch' in sys.modules)\n"
+        f"for name in {stages!r}: importlib.import_module('adaptdiffuser.stages.' + name)\n"
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('mlflow', 'sqlalchemy')))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split("\n")[:2] == ["False", "[]"] and len(stages) > 10
+
+
+def test_the_mlflow_log_command_logs_what_a_failed_pipeline_left(
+    store: MlflowClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a pipeline that stopped before ``summarize``, ``adaptdiffuser mlflow-log`` logs its records by hand."""
+    from typer.testing import CliRunner
+
+    from adaptdiffuser.cli import app
+
+    with pytest.raises(RuntimeError), stage_run(TASK, "evaluate", 1, {}, tmp_path, seed=0):
+        raise RuntimeError("boom")
+    monkeypatch.chdir(tmp_path)
+    out = CliRunner().invoke(app, ["mlflow-log"])
+    assert out.exit_code == 0 and out.output.startswith("logged 1 stage run(s) to sqlite:///"), out.output
+    (run,) = store.search_runs([store.get_experiment_by_name(TASK).experiment_id], "tags.stage = 'evaluate'")
+    assert run.info.status == "FAILED" and pending_records(tmp_path) == []
+    assert CliRunner().invoke(app, ["mlflow-log"]).output.startswith("logged 0 stage run(s)")
+
+
+def test_pending_records_are_ignored_by_git_and_dvc(tmp_path: Path) -> None:
+    """Whole records and the hidden folder of one being written are neither committed nor seen by DVC."""
+    repo = Path(__file__).resolve().parents[1]
+    for name in (".gitignore", ".dvcignore"):
+        (tmp_path / name).write_text((repo / name).read_text())
+    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}", DVC_NO_ANALYTICS="1")
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True, env=env)
+    subprocess.run(["dvc", "init", "-q"], cwd=tmp_path, check=True, env=env)
+    paths = [f"{PENDING}/0001-ab/record.json", f"{PENDING}/.0002-cd.tmp/models/0/model.pt", f"{PENDING}/.lock"]
+    for rel in paths:
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_text("x")
+    for tool in ("git", "dvc"):
+        for rel in paths:
+            assert subprocess.run([tool, "check-ignore", "-q", rel], cwd=tmp_path, env=env).returncode == 0, (tool, rel)
