@@ -89,7 +89,7 @@ class LocomotionFamily(Family):
     def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
         """Diffuser's value-guided controller: N plans from the current state, the first action of the best."""
         from adaptdiffuser.diffusion.guidance import ValueGuidance
-        from adaptdiffuser.planning import ValuePlanningController
+        from adaptdiffuser.families.locomotion.controller import ValuePlanningController
         from adaptdiffuser.value_training import load_value
 
         value_net, _ = load_value(files.value, device)
