@@ -14,6 +14,7 @@ from typing import Any
 from pydantic import TypeAdapter, ValidationError
 
 from adaptdiffuser.config.errors import ConfigError, config_error, show
+from adaptdiffuser.config.family_settings import family_names, is_family, settings_model
 from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.sections import (
     DiffusionParams,
@@ -69,17 +70,15 @@ def _plain(value: Any) -> Any:
 def build_task(name: str, entry: Any, generic: Mapping[str, Any]) -> TaskParams:
     """Validate ``task.<name>``: the family's model for its own keys, the generic overrides merged over
     ``generic`` (the validated top-level sections)."""
-    from adaptdiffuser.family_registry import FAMILIES, task_params_model
-
     where = f"task.{name}"
     if not TASK_NAME.fullmatch(str(name)):
         raise ConfigError(f"{where}: task names are lower-case letters, digits, '_' and '-', like hopper-medium")
     if not isinstance(entry, Mapping):
         raise ConfigError(f"{where}: must be a mapping with a 'family' key, got {show(entry)}")
     family = entry.get("family")
-    if family not in FAMILIES:
-        raise ConfigError(f"{where}.family: must be one of {sorted(FAMILIES)}, got {show(family)}")
-    model = task_params_model(family)
+    if not is_family(family):
+        raise ConfigError(f"{where}.family: must be one of {family_names()}, got {show(family)}")
+    model = settings_model(family)
     own = {key: value for key, value in entry.items() if key not in GENERIC_SECTIONS}
     try:
         settings = TypeAdapter(model).validate_python(own)
