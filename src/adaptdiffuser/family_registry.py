@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import importlib
 from functools import cache, partial
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from adaptdiffuser.config.family_settings import register_family
 
@@ -44,7 +44,7 @@ for _name in FAMILIES:  # config validates task entries with these models, loade
 
 
 @cache
-def get_family(name: str) -> Family:
+def get_family(name: str) -> Family[Any]:
     """The family registered as ``name``; ``KeyError`` naming the known families otherwise."""
     family = importlib.import_module(f"{_package(name)}.family").FAMILY()
     if family.name != name:

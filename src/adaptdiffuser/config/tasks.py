@@ -9,7 +9,7 @@ import dataclasses
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from pydantic import TypeAdapter, ValidationError
 
@@ -33,16 +33,19 @@ GENERIC_SECTIONS: dict[str, type] = {
     "evaluate": EvaluateParams,
 }
 TASK_NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
+#: the type of a task's family settings (a family's ``TASK_PARAMS``), so ``task.settings`` is typed in its family
+SettingsT = TypeVar("SettingsT")
 
 
 @dataclass(frozen=True)
-class TaskParams:
+class TaskParams(Generic[SettingsT]):
     """One task, resolved: its name and family, the family's own settings, and the generic sections with this
-    task's overrides merged in. Stages take one of these (``params.resolve(name)``)."""
+    task's overrides merged in. Stages take one of these (``params.resolve(name)``); a family's code types its tasks
+    ``TaskParams[<its settings model>]``."""
 
     name: str
     family: str
-    settings: Any
+    settings: SettingsT
     model: ModelParams
     diffusion: DiffusionParams
     pretrain: PretrainParams
@@ -67,7 +70,7 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def build_task(name: str, entry: Any, generic: Mapping[str, Any]) -> TaskParams:
+def build_task(name: str, entry: Any, generic: Mapping[str, Any]) -> TaskParams[Any]:
     """Validate ``task.<name>``: the family's model for its own keys, the generic overrides merged over
     ``generic`` (the validated top-level sections)."""
     where = f"task.{name}"
