@@ -21,10 +21,11 @@ from adaptdiffuser.config import load_params
 from adaptdiffuser.data.normalizer import GaussianNormalizer
 from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import make_sampler
+from adaptdiffuser.families.locomotion.controller import ValuePlanningController
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir, value_dir
 from adaptdiffuser.models.value_network import ValueNetwork
-from adaptdiffuser.planning import Planner, ValuePlanningController
+from adaptdiffuser.planning import Planner
 from adaptdiffuser.stages.common import resolve_device
 from adaptdiffuser.value_training import load_value
 

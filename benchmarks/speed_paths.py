@@ -25,11 +25,12 @@ from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
 from adaptdiffuser.diffusion.guidance import Guidance, Objective, ValueGuidance
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import run_episodes
+from adaptdiffuser.families.locomotion.controller import ValuePlanningController
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir
 from adaptdiffuser.models.compiled import compile_network
 from adaptdiffuser.models.value_network import ValueNetwork
-from adaptdiffuser.planning import Planner, ValuePlanningController
+from adaptdiffuser.planning import Planner
 
 PROFILES = Path(__file__).resolve().parents[1] / "profiles"
 

@@ -20,6 +20,8 @@ from adaptdiffuser.tooling.code_fingerprint import PACKAGE_DIR, code_paths, core
 
 REPO = Path(__file__).resolve().parents[1]
 LINT_IMPORTS = Path(sys.executable).parent / "lint-imports"
+#: an import for type checking alone, of the module named by ``format``
+TYPE_ONLY = "import typing\nif typing.TYPE_CHECKING:\n    import adaptdiffuser.{}"
 
 
 def _lint(package_parent: Path, cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -47,15 +49,20 @@ def test_the_import_contracts_hold() -> None:
 @pytest.mark.parametrize(
     ("module", "line", "contract"),
     [
-        ("contract.py", "import adaptdiffuser.evaluation", "The contract and the file layout import nothing"),
+        ("contract.py", "import adaptdiffuser.evaluation", "The contract imports only what its types name"),
+        ("config/tasks.py", "import adaptdiffuser.family_registry", "Config imports neither the family registry"),
+        ("config/defaults.py", TYPE_ONLY.format("contract"), "the bottom layer"),
+        ("config/sections.py", "import adaptdiffuser.families.maze2d.params", "Config imports neither"),
         ("evaluation.py", "import adaptdiffuser.stages.common", "never import the stages"),
         ("stages/summarize.py", "import adaptdiffuser.families.kuka.scene", "imported only inside its own folder"),
         ("families/kuka/tasks.py", "import adaptdiffuser.families.maze2d.layouts", "independent of each other"),
         ("io.py", "import adaptdiffuser.plots", "No import cycles"),
+        ("planning.py", TYPE_ONLY.format("contract"), "No import cycles"),
     ],
 )
 def test_a_violating_import_breaks_its_contract(tmp_path: Path, module: str, line: str, contract: str) -> None:
-    """The linter reads the package it is given: a copy with one bad import fails, naming the contract."""
+    """The linter reads the package it is given: a copy with one bad import fails, naming the contract; imports for
+    type checking alone count too."""
     shutil.copytree(PACKAGE_DIR, tmp_path / "adaptdiffuser", ignore=shutil.ignore_patterns("__pycache__"))
     target = tmp_path / "adaptdiffuser" / module
     target.write_text(target.read_text() + f"\n{line}  # a deliberate violation\n")
@@ -73,8 +80,12 @@ def test_the_contracts_name_every_top_level_module() -> None:
         if (p.suffix == ".py" and p.stem != "__init__") or (p.is_dir() and (p / "__init__.py").exists())
     }
     contracts = {c["name"]: c for c in _contracts()}
-    bottom = contracts["The contract and the file layout import nothing of the project above them"]
+    bottom = [c for name, c in contracts.items() if name.startswith("Config, the file layout and the file helpers")][0]
     assert set(bottom["source_modules"]) | set(bottom["forbidden_modules"]) == top
+    contract = [c for name, c in contracts.items() if name.startswith("The contract imports only")][0]
+    below_contract = {"config", "data", "planning", "layout", "checkpoint", "diffusion", "models", "io"}
+    allowed = {f"adaptdiffuser.{name}" for name in below_contract}
+    assert set(contract["forbidden_modules"]) == top - allowed - {"adaptdiffuser.contract"}
     core = [c for name, c in contracts.items() if name.startswith("The core and the families never import")][0]
     assert set(core["source_modules"]) | set(core["forbidden_modules"]) == top
     internals = contracts["A family's internals are imported only inside its own folder"]

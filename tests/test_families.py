@@ -3,15 +3,22 @@ core and the families are import-linter contracts, tests/test_architecture.py)."
 
 from __future__ import annotations
 
+import typing
+
 import numpy as np
 import pytest
 
 from adaptdiffuser.config import Params, params_from_dict
+from adaptdiffuser.config.family_settings import family_names, settings_model
+from adaptdiffuser.config.tasks import GENERIC_SECTIONS, build_task
 from adaptdiffuser.contract import Family, Simulator
 from adaptdiffuser.data.normalizer import fit_normalizer
 from adaptdiffuser.diffusion.conditions import CONDITIONINGS
 from adaptdiffuser.families.maze2d.simulator import Maze2D
 from adaptdiffuser.family_registry import FAMILIES, get_family, task_params_model
+
+#: a task name of each family
+TASK_OF = {"maze2d": "maze2d-umaze", "locomotion": "hopper-medium", "kuka": "kuka-stacking"}
 
 
 def test_every_registered_family_loads_under_its_own_name() -> None:
@@ -26,6 +33,24 @@ def test_unknown_family_names_the_registered_ones() -> None:
         get_family("quadcopter")
     with pytest.raises(KeyError, match=r"registered families: \['kuka', 'locomotion', 'maze2d'\]"):
         task_params_model("quadcopter")
+
+
+def test_the_registry_hands_config_each_family_settings_model() -> None:
+    """Config imports no family: it knows the families only as the registry registered them."""
+    assert family_names() == sorted(FAMILIES)
+    for name in FAMILIES:
+        assert settings_model(name) is task_params_model(name)
+    with pytest.raises(KeyError, match=r"registered families: \['kuka', 'locomotion', 'maze2d'\]"):
+        settings_model("quadcopter")
+
+
+def test_each_family_is_typed_by_its_own_settings_model() -> None:
+    """``Family[<its TASK_PARAMS>]``, so ``task.settings`` in a family's code has the family's own type."""
+    for name in FAMILIES:
+        bases = [b for b in type(get_family(name)).__orig_bases__ if typing.get_origin(b) is Family]
+        assert [typing.get_args(b) for b in bases] == [(task_params_model(name),)], name
+        task = build_task(TASK_OF[name], {"family": name}, {key: getattr(Params(), key) for key in GENERIC_SECTIONS})
+        assert type(task.settings) is task_params_model(name)
 
 
 def test_locomotion_family_builds_the_simulator_of_a_task_name() -> None:

@@ -19,7 +19,8 @@ from adaptdiffuser.diffusion.conditions import training_conditions
 from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import DDIMSampler, DDPMSampler
 from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.planning import Planner, ValuePlanningController, shift_plans
+from adaptdiffuser.families.locomotion.controller import ValuePlanningController, shift_plans
+from adaptdiffuser.planning import Planner
 
 CPU = torch.device("cpu")
 

@@ -1,5 +1,6 @@
-"""The contract between the generic core and the benchmark families: the types both sides use. It imports
-nothing of the project but :mod:`adaptdiffuser.layout` (the file layout), so every other module may import it.
+"""The contract between the generic core and the benchmark families: the types both sides use. At run time it
+imports nothing of the project but :mod:`adaptdiffuser.layout` (the file layout); its types also name config, data
+and the planner (imported for type checking), so it sits above those and below everything that uses it.
 
 A family is one folder under ``families/`` and one line in :mod:`adaptdiffuser.family_registry`:
 
@@ -20,13 +21,13 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
 import numpy as np
 
 from adaptdiffuser.layout import collect_dir, collect_resume_path, dataset_path, value_dir
 
-if TYPE_CHECKING:  # types only: at run time the contract imports nothing of the project but the layout
+if TYPE_CHECKING:  # types only (still layers below the contract): at run time it imports only the layout
     import torch
     from gymnasium import Space
     from gymnasium.envs.registration import EnvSpec
@@ -36,6 +37,9 @@ if TYPE_CHECKING:  # types only: at run time the contract imports nothing of the
     from adaptdiffuser.data.d4rl import ExternalData
     from adaptdiffuser.data.schema import Trajectories
     from adaptdiffuser.planning import Planner
+
+#: the type of a family's task settings (its ``TASK_PARAMS``)
+SettingsT = TypeVar("SettingsT")
 
 
 @dataclass(frozen=True)
@@ -174,10 +178,11 @@ class Judgement:
         }
 
 
-class Family(ABC):
+class Family(ABC, Generic[SettingsT]):
     """A benchmark family: everything the generic pipeline needs to know about its tasks. ``task`` arguments are
-    :class:`~adaptdiffuser.config.TaskParams` (the family's own settings are ``task.settings``); ``paths`` is a
-    :class:`TaskFiles` naming the task's files."""
+    :class:`~adaptdiffuser.config.TaskParams` whose ``settings`` are the family's own (``SettingsT``, its
+    ``TASK_PARAMS``: a family subclasses ``Family[<its settings model>]``); ``files`` is a :class:`TaskFiles` naming
+    the task's files."""
 
     #: the ``family`` value of a task entry in params.yaml
     name: str
@@ -192,20 +197,22 @@ class Family(ABC):
     uses_value_function: bool = False
 
     @abstractmethod
-    def make_simulator(self, task: TaskParams) -> Simulator:
+    def make_simulator(self, task: TaskParams[SettingsT]) -> Simulator:
         """A fresh simulator for ``task``."""
 
     @abstractmethod
-    def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
+    def collect(self, task: TaskParams[SettingsT], files: TaskFiles, progress: bool) -> Trajectories:
         """The task's offline dataset (with file metadata); may write its own outputs (such as behaviour policies)
         under ``files.collect``."""
 
     @abstractmethod
-    def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
+    def reference(self, task: TaskParams[SettingsT], files: TaskFiles, progress: bool) -> dict[str, Any]:
         """What 0 (``r_min``) and 100 (``r_max``) of the normalized score mean, plus any other reference figures."""
 
     @abstractmethod
-    def controller(self, task: TaskParams, planner: Planner, files: TaskFiles, device: torch.device) -> Controller:
+    def controller(
+        self, task: TaskParams[SettingsT], planner: Planner, files: TaskFiles, device: torch.device
+    ) -> Controller:
         """The controller that turns the planner's plans into actions in the simulator during evaluation."""
 
     def episode_columns(self, result: EpisodeBatchResult) -> dict[str, list[Any]]:
@@ -222,7 +229,7 @@ class Family(ABC):
 
     def evaluate_unseen(
         self,
-        task: TaskParams,
+        task: TaskParams[SettingsT],
         planner: Planner,
         alpha: float,
         ref: dict[str, Any],
@@ -242,7 +249,7 @@ class Family(ABC):
     @abstractmethod
     def save_picture(
         self,
-        task: TaskParams,
+        task: TaskParams[SettingsT],
         path: Path,
         plan: np.ndarray | None,
         executed: np.ndarray,
@@ -251,19 +258,19 @@ class Family(ABC):
     ) -> None:
         """One PNG of an evaluation episode: the first plan and the executed states."""
 
-    def describe(self, task: TaskParams) -> dict[str, Any]:
+    def describe(self, task: TaskParams[SettingsT]) -> dict[str, Any]:
         """Facts about the task worth logging next to its runs (env id, dataset kind...)."""
         return {}
 
     # -- external data (the import stage and the Minari export) ------------------------------------------------------
 
-    def from_external(self, task: TaskParams, raw: ExternalData) -> Trajectories:
+    def from_external(self, task: TaskParams[SettingsT], raw: ExternalData) -> Trajectories:
         """The task's dataset (with file metadata) from external data (a D4RL file or a Minari dataset, in their own
         coordinates); :class:`~adaptdiffuser.data.d4rl.DataImportError` naming the source, the field, the expected
         and the found dimension when the data does not fit the task's environment."""
         raise NotImplementedError(f"family {self.name!r} cannot import external data")
 
-    def export_spec(self, task: TaskParams) -> tuple[EnvSpec | None, Space, Space]:
+    def export_spec(self, task: TaskParams[SettingsT]) -> tuple[EnvSpec | None, Space, Space]:
         """``(env_spec, observation_space, action_space)`` for a Minari dataset of this task's data: the gymnasium
         ``EnvSpec`` of its environment (None when it has none) and the spaces of our observation and action rows."""
         import gymnasium as gym
@@ -276,7 +283,7 @@ class Family(ABC):
 
     def generate(
         self,
-        task: TaskParams,
+        task: TaskParams[SettingsT],
         planner: Planner,
         files: TaskFiles,
         cfg: GenerateParams,
@@ -292,7 +299,7 @@ class Family(ABC):
 
     def discriminate(
         self,
-        task: TaskParams,
+        task: TaskParams[SettingsT],
         generated: Trajectories,
         cfg: DiscriminateParams,
         phase: int,
@@ -304,7 +311,7 @@ class Family(ABC):
         raise NotImplementedError(f"family {self.name!r} has no evolution phases")
 
     def selected_data(
-        self, task: TaskParams, generated: Trajectories, judgement: Judgement, generator: dict[str, Any]
+        self, task: TaskParams[SettingsT], generated: Trajectories, judgement: Judgement, generator: dict[str, Any]
     ) -> Trajectories:
         """The kept executed trajectories as a dataset (``generator``: metadata of how they were made)."""
         raise NotImplementedError(f"family {self.name!r} has no evolution phases")

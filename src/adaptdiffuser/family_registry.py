@@ -4,14 +4,22 @@ never imports a family's simulator (or its heavy dependencies) unless a task of 
 A family package has ``params.py`` defining ``TASK_PARAMS`` (the model of its ``task.<name>`` entries, light to
 import) and ``family.py`` defining ``FAMILY`` (its :class:`~adaptdiffuser.contract.Family` subclass).
 Adding a family = that folder plus one line here.
+
+The registry sits above config and the contract: importing it hands config each family's settings model
+(:func:`adaptdiffuser.config.family_settings.register_family`); the package's ``__init__`` imports it, so this is
+done before any params are read. Config never imports the registry.
 """
 
 from __future__ import annotations
 
 import importlib
-from functools import cache
+from functools import cache, partial
+from typing import TYPE_CHECKING, Any
 
-from adaptdiffuser.contract import Family
+from adaptdiffuser.config.family_settings import register_family
+
+if TYPE_CHECKING:
+    from adaptdiffuser.contract import Family
 
 FAMILIES: dict[str, str] = {
     "maze2d": "adaptdiffuser.families.maze2d",
@@ -31,8 +39,12 @@ def task_params_model(name: str) -> type:
     return importlib.import_module(f"{_package(name)}.params").TASK_PARAMS
 
 
+for _name in FAMILIES:  # config validates task entries with these models, loaded when a task of the family is read
+    register_family(_name, partial(task_params_model, _name))
+
+
 @cache
-def get_family(name: str) -> Family:
+def get_family(name: str) -> Family[Any]:
     """The family registered as ``name``; ``KeyError`` naming the known families otherwise."""
     family = importlib.import_module(f"{_package(name)}.family").FAMILY()
     if family.name != name:

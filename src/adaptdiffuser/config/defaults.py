@@ -15,6 +15,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
+from adaptdiffuser.config.family_settings import is_family, settings_model
 from adaptdiffuser.config.loader import params_from_dict
 from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.params import Params
@@ -76,9 +77,7 @@ def class_defaults() -> dict[str, Any]:
 
 def family_defaults(family: str) -> dict[str, Any]:
     """Every key of a task entry of ``family`` at its default, ``family`` first."""
-    from adaptdiffuser.family_registry import task_params_model
-
-    return {"family": family} | plain(task_params_model(family)())
+    return {"family": family} | plain(settings_model(family)())
 
 
 def complete(raw: Mapping[str, Any]) -> dict[str, Any]:
@@ -97,9 +96,7 @@ def complete(raw: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _complete_entry(entry: Any) -> Any:
-    from adaptdiffuser.family_registry import FAMILIES
-
-    if not isinstance(entry, Mapping) or entry.get("family") not in FAMILIES:
+    if not isinstance(entry, Mapping) or not is_family(entry.get("family")):
         return entry  # not a task entry: validation names the problem
     return deep_merge(family_defaults(entry["family"]), dict(entry))
 
@@ -107,11 +104,9 @@ def _complete_entry(entry: Any) -> Any:
 def unwritten(raw: Mapping[str, Any]) -> list[str]:
     """The family keys the task entries of ``raw`` (a params file) leave out, each as ``task.<name>.<key>=<the
     default it takes>``."""
-    from adaptdiffuser.family_registry import FAMILIES
-
     missing: list[str] = []
     for name, entry in (raw.get("task") or {}).items():
-        if isinstance(entry, Mapping) and entry.get("family") in FAMILIES:
+        if isinstance(entry, Mapping) and is_family(entry.get("family")):
             missing += _left_out(entry, family_defaults(entry["family"]), f"task.{name}.")
     return missing
 

@@ -19,6 +19,7 @@ import yaml
 
 from adaptdiffuser.config.defaults import complete
 from adaptdiffuser.config.errors import ConfigError
+from adaptdiffuser.config.family_settings import family_names
 from adaptdiffuser.config.loader import load_params, params_from_dict, read_yaml_mapping
 from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.tiny import shrink
@@ -116,16 +117,14 @@ def profile_layers(path: Path, parts_dir: Path, chain: tuple[Path, ...] = ()) ->
 def expand_family_defaults(raw: dict, path: Path) -> dict:
     """``raw`` without its ``family_defaults`` key, each task entry of a family it names merged over that family's
     defaults (the entry's keys win; ``family`` stays first). ``path`` names the profile in errors."""
-    from adaptdiffuser.family_registry import FAMILIES
-
     defaults = raw.get(FAMILY_DEFAULTS)
     if defaults is None:
         return raw
     if not isinstance(defaults, dict) or not all(isinstance(v, dict) for v in defaults.values()):
         raise ConfigError(f"{path}: {FAMILY_DEFAULTS} must map a family name to that family's task settings")
-    unknown = sorted(set(defaults) - set(FAMILIES))
+    unknown = sorted(set(defaults) - set(family_names()))
     if unknown:
-        raise ConfigError(f"{path}: {FAMILY_DEFAULTS} names unknown families {unknown}; families: {sorted(FAMILIES)}")
+        raise ConfigError(f"{path}: {FAMILY_DEFAULTS} names unknown families {unknown}; families: {family_names()}")
     if any("family" in settings for settings in defaults.values()):
         raise ConfigError(f"{path}: {FAMILY_DEFAULTS}.<family> must not set 'family' (it is the key above it)")
     expanded = {key: value for key, value in raw.items() if key != FAMILY_DEFAULTS}

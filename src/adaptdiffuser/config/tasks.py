@@ -9,11 +9,12 @@ import dataclasses
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 from pydantic import TypeAdapter, ValidationError
 
 from adaptdiffuser.config.errors import ConfigError, config_error, show
+from adaptdiffuser.config.family_settings import family_names, is_family, settings_model
 from adaptdiffuser.config.merge import deep_merge
 from adaptdiffuser.config.sections import (
     DiffusionParams,
@@ -32,16 +33,19 @@ GENERIC_SECTIONS: dict[str, type] = {
     "evaluate": EvaluateParams,
 }
 TASK_NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
+#: the type of a task's family settings (a family's ``TASK_PARAMS``), so ``task.settings`` is typed in its family
+SettingsT = TypeVar("SettingsT")
 
 
 @dataclass(frozen=True)
-class TaskParams:
+class TaskParams(Generic[SettingsT]):
     """One task, resolved: its name and family, the family's own settings, and the generic sections with this
-    task's overrides merged in. Stages take one of these (``params.resolve(name)``)."""
+    task's overrides merged in. Stages take one of these (``params.resolve(name)``); a family's code types its tasks
+    ``TaskParams[<its settings model>]``."""
 
     name: str
     family: str
-    settings: Any
+    settings: SettingsT
     model: ModelParams
     diffusion: DiffusionParams
     pretrain: PretrainParams
@@ -66,20 +70,18 @@ def _plain(value: Any) -> Any:
     return value
 
 
-def build_task(name: str, entry: Any, generic: Mapping[str, Any]) -> TaskParams:
+def build_task(name: str, entry: Any, generic: Mapping[str, Any]) -> TaskParams[Any]:
     """Validate ``task.<name>``: the family's model for its own keys, the generic overrides merged over
     ``generic`` (the validated top-level sections)."""
-    from adaptdiffuser.family_registry import FAMILIES, task_params_model
-
     where = f"task.{name}"
     if not TASK_NAME.fullmatch(str(name)):
         raise ConfigError(f"{where}: task names are lower-case letters, digits, '_' and '-', like hopper-medium")
     if not isinstance(entry, Mapping):
         raise ConfigError(f"{where}: must be a mapping with a 'family' key, got {show(entry)}")
     family = entry.get("family")
-    if family not in FAMILIES:
-        raise ConfigError(f"{where}.family: must be one of {sorted(FAMILIES)}, got {show(family)}")
-    model = task_params_model(family)
+    if not is_family(family):
+        raise ConfigError(f"{where}.family: must be one of {family_names()}, got {show(family)}")
+    model = settings_model(family)
     own = {key: value for key, value in entry.items() if key not in GENERIC_SECTIONS}
     try:
         settings = TypeAdapter(model).validate_python(own)

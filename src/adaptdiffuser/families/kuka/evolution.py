@@ -10,7 +10,7 @@ are selected by the blocks placed (the paper: reward > 1.5, at least two of four
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -30,6 +30,9 @@ from adaptdiffuser.families.kuka.execution import (
 from adaptdiffuser.families.kuka.scene import FLAG_COLUMNS, N_JOINTS
 from adaptdiffuser.families.kuka.simulator import KukaSimulator
 from adaptdiffuser.families.kuka.tasks import block_positions
+
+if TYPE_CHECKING:
+    from adaptdiffuser.families.kuka.params import KukaTaskParams
 
 SETUP_COLUMN = "pick_place_setup"
 #: the columns the reference's tracking check compares: the joints and the suction flags
@@ -62,7 +65,7 @@ def setup_of_tasks(n: int, setups: list[int]) -> np.ndarray:
 
 def generate_episodes(
     make_simulator: Any,
-    task: TaskParams,
+    task: TaskParams[KukaTaskParams],
     planner: Any,
     cfg: GenerateParams,
     alpha: float,
@@ -148,7 +151,7 @@ def within_range(observations: np.ndarray, low: np.ndarray, high: np.ndarray, ex
 
 def judge_episodes(
     make_simulator: Any,
-    task: TaskParams,
+    task: TaskParams[KukaTaskParams],
     generated: Trajectories,
     cfg: DiscriminateParams,
     expert: np.ndarray,
@@ -183,7 +186,9 @@ def judge_episodes(
     return Judgement(trajectories=judged, passed_tracking=passed, kept=kept, details=details)
 
 
-def selected_episodes(task: TaskParams, judgement: Judgement, generator: dict[str, Any]) -> Trajectories:
+def selected_episodes(
+    task: TaskParams[KukaTaskParams], judgement: Judgement, generator: dict[str, Any]
+) -> Trajectories:
     """The kept executed episodes (states only) with their real rewards (the stage never asks with none kept)."""
     kept = [judgement.trajectories[i] for i in judgement.kept]
     return state_episodes(

@@ -27,6 +27,7 @@ from adaptdiffuser.families.kuka.tasks import PLACE_TARGETS, block_positions, pl
 
 if TYPE_CHECKING:
     from adaptdiffuser.config import TaskParams
+    from adaptdiffuser.families.kuka.params import KukaTaskParams
     from adaptdiffuser.planning import Planner
 
 
@@ -294,7 +295,7 @@ def place_goal(planner: Planner, next_block: str = "in_turn") -> Callable[[int, 
 
 
 def task_controller(
-    task: TaskParams,
+    task: TaskParams[KukaTaskParams],
     planner: Planner,
     seed: int,
     guidance: Callable[[int, int, int], GuidanceBase | None] | None = None,
@@ -311,7 +312,7 @@ def task_controller(
 
 
 def pick_place_controller(
-    task: TaskParams, planner: Planner, alpha: float, seed: int, record: bool = False
+    task: TaskParams[KukaTaskParams], planner: Planner, alpha: float, seed: int, record: bool = False
 ) -> ReplanningController:
     """The controller of pick-and-place episodes (evaluation and generation), as the ``pick_place`` settings say:
     guided with scale ``alpha`` from ``guide_from``, conditioned on holding the guided block over ``hold`` when that

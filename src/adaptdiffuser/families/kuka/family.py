@@ -21,12 +21,12 @@ from adaptdiffuser.families.kuka.simulator import KukaSimulator
 SETUP_LAYOUTS = {1: "scattered", 2: "tower"}
 
 
-def episode_steps(task: TaskParams, replans: int) -> int:
+def episode_steps(task: TaskParams[KukaTaskParams], replans: int) -> int:
     """An episode is ``replans`` open-loop plans of the horizon (each plan's first state is the current one)."""
     return replans * (task.diffusion.horizon - 1)
 
 
-class KukaFamily(Family):
+class KukaFamily(Family[KukaTaskParams]):
     """A KUKA iiwa arm with a suction cup and four blocks (PyBullet); plans are 39-d states (no actions), executed
     open loop by position control and replanned a few times per episode."""
 
@@ -35,13 +35,13 @@ class KukaFamily(Family):
     normalizer_kind = "minmax"
     unseen_task = KukaTaskParams.UNSEEN_TASK
 
-    def make_simulator(self, task: TaskParams, kind: str = "stacking", setup: int = 1) -> KukaSimulator:
+    def make_simulator(self, task: TaskParams[KukaTaskParams], kind: str = "stacking", setup: int = 1) -> KukaSimulator:
         """The simulator of stacking (the task's score) or of pick-and-place setup ``setup``."""
         s = task.settings
         replans = s.pick_place.replans if kind == "pick_place" else s.replans
         return KukaSimulator(s, kind, SETUP_LAYOUTS[setup], episode_steps(task, replans))
 
-    def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
+    def collect(self, task: TaskParams[KukaTaskParams], files: TaskFiles, progress: bool) -> Trajectories:
         """Scripted stacking demonstrations; the demonstrator's own figures go to ``demonstrator.json``."""
         from adaptdiffuser.families.kuka.demonstrator import collect_demonstrations
         from adaptdiffuser.io import write_json
@@ -50,7 +50,7 @@ class KukaFamily(Family):
         write_json(files.collect / "demonstrator.json", figures)
         return traj
 
-    def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
+    def reference(self, task: TaskParams[KukaTaskParams], files: TaskFiles, progress: bool) -> dict[str, Any]:
         """Score 0 = nothing stacked, 100 = the full tower (3 blocks on others); beside it, on the evaluation seeds,
         the scripted demonstrator and uniformly random joint targets and suction flags."""
         from adaptdiffuser.families.kuka.demonstrator import DemonstratorController
@@ -78,14 +78,20 @@ class KukaFamily(Family):
             ref[f"{who}_score_stderr"] = standard_error(scores)
         return ref
 
-    def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
+    def controller(self, task: TaskParams[KukaTaskParams], planner: Any, files: TaskFiles, device: Any) -> Controller:
         """Open-loop plans of the horizon, ``replans`` per episode (or replanned more often, per ``planning``)."""
         from adaptdiffuser.families.kuka.execution import task_controller
 
         return task_controller(task, planner, task.evaluate.seed)
 
     def pick_place_episodes(
-        self, task: TaskParams, planner: Any, alpha: float, setup: int, record: bool = False, progress: bool = False
+        self,
+        task: TaskParams[KukaTaskParams],
+        planner: Any,
+        alpha: float,
+        setup: int,
+        record: bool = False,
+        progress: bool = False,
     ) -> tuple[EpisodeBatchResult, Controller]:
         """The pick-and-place evaluation episodes of one setup (``pick_place`` settings), guided with scale
         ``alpha``; with the controller that ran them (its ``recorded`` plans when ``record``)."""
@@ -153,7 +159,13 @@ class KukaFamily(Family):
         return {"full_tower_rate": float(np.mean(full)), "blocks_held_mean": float(np.mean(held))}
 
     def save_picture(
-        self, task: TaskParams, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None
+        self,
+        task: TaskParams[KukaTaskParams],
+        path: Path,
+        plan: np.ndarray | None,
+        executed: np.ndarray,
+        title: str,
+        goal: Any = None,
     ) -> None:
         """The final scene (rebuilt at the last executed state and rendered) and the blocks' heights."""
         from adaptdiffuser.families.kuka.pictures import save_episode_picture
@@ -163,7 +175,7 @@ class KukaFamily(Family):
         save_episode_picture(path, sim.render(), executed, plan, title)
         sim.close()
 
-    def describe(self, task: TaskParams) -> dict[str, Any]:
+    def describe(self, task: TaskParams[KukaTaskParams]) -> dict[str, Any]:
         return {
             "simulator": "pybullet kuka_iiwa, 4 blocks, suction",
             "stacking_episode_steps": episode_steps(task, task.settings.replans),

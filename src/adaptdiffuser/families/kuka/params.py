@@ -190,7 +190,7 @@ class KukaTaskParams(BaseModel):
         p = self.pick_place
         return f"pick-and-place, {p.episodes} episodes in each of setups {p.setups}"
 
-    def tiny(self, task: TaskParams) -> dict[str, Any]:
+    def tiny(self, task: TaskParams[KukaTaskParams]) -> dict[str, Any]:
         """This family's keys at tiny scale (``adaptdiffuser profile NAME --tiny``): two demonstrations, one
         pick-and-place episode per setup."""
         return {"collect": {"episodes": 2}, "pick_place": {"episodes": 1, "batch_size": 1}}
@@ -199,7 +199,7 @@ class KukaTaskParams(BaseModel):
         if name not in TASK_NAMES:
             raise ConfigError(f"task.{name}: KUKA tasks are named {list(TASK_NAMES)}")
 
-    def check(self, task: TaskParams, params: Params) -> None:
+    def check(self, task: TaskParams[KukaTaskParams], params: Params) -> None:
         """Plans at least two steps long, a hold span that holds some step of them, replans within a plan."""
         if task.diffusion.horizon < 2:
             raise ConfigError(f"task.{task.name}.diffusion.horizon: KUKA plans need at least 2 steps")

@@ -4,6 +4,8 @@ of the task's count (blocks stacked, or blocks placed), so an episode's return i
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from adaptdiffuser.contract import Simulator, Step
@@ -28,6 +30,9 @@ KINDS = ("stacking", "pick_place")
 #: where the blocks start: ``scattered`` on the floor, or one ``tower`` (pick-and-place setups 1 and 2)
 LAYOUTS = ("scattered", "tower")
 
+if TYPE_CHECKING:
+    from adaptdiffuser.families.kuka.params import KukaTaskParams
+
 
 class KukaSimulator(Simulator):
     """One KUKA episode: ``kind`` says what is counted, ``layout`` how the blocks start; ``settings`` is the task's
@@ -37,7 +42,9 @@ class KukaSimulator(Simulator):
     act_dim = N_JOINTS + N_BLOCKS
     state_dim = 0
 
-    def __init__(self, settings, kind: str = "stacking", layout: str = "scattered", episode_steps: int = 381):
+    def __init__(
+        self, settings: KukaTaskParams, kind: str = "stacking", layout: str = "scattered", episode_steps: int = 381
+    ):
         if kind not in KINDS:
             raise ValueError(f"unknown KUKA task kind {kind!r}; choose one of {KINDS}")
         if layout not in LAYOUTS:

@@ -20,7 +20,7 @@ from adaptdiffuser.contract import Judgement, TaskFiles, TrackedTrajectory
 from adaptdiffuser.data.schema import SchemaError, Trajectories, make_metadata, read_trajectories
 from adaptdiffuser.derived_seeds import derive_seed
 from adaptdiffuser.evolution.discriminator import SelectionRule, generic_selection_rule, select
-from adaptdiffuser.families.locomotion.params import PAPER_THRESHOLDS
+from adaptdiffuser.families.locomotion.params import PAPER_THRESHOLDS, LocomotionTaskParams
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator
 
 START_COLUMN = "task_start_state"
@@ -67,7 +67,7 @@ def sample_start_states(
 
 def generate_segments(
     sim: LocomotionSimulator,
-    task: TaskParams,
+    task: TaskParams[LocomotionTaskParams],
     planner: Any,
     files: TaskFiles,
     cfg: GenerateParams,
@@ -153,7 +153,7 @@ class SegmentJudgement(Judgement):
 
 def judge_segments(
     sim: LocomotionSimulator,
-    task: TaskParams,
+    task: TaskParams[LocomotionTaskParams],
     generated: Trajectories,
     dataset: Trajectories,
     cfg: DiscriminateParams,
@@ -185,7 +185,7 @@ def judge_segments(
 
 def selected_segments(
     sim: LocomotionSimulator,
-    task: TaskParams,
+    task: TaskParams[LocomotionTaskParams],
     judgement: SegmentJudgement,
     generator: dict[str, Any],
 ) -> Trajectories:

@@ -12,7 +12,7 @@ from adaptdiffuser.config import TaskParams
 from adaptdiffuser.contract import Controller, EpisodeBatchResult, Family, TaskFiles
 from adaptdiffuser.data.schema import Trajectories, read_trajectories
 from adaptdiffuser.evaluation import standard_error
-from adaptdiffuser.families.locomotion.params import parse_task_name
+from adaptdiffuser.families.locomotion.params import LocomotionTaskParams, parse_task_name
 from adaptdiffuser.families.locomotion.reference import REFERENCE_RETURNS, normalized_score, robot_of
 from adaptdiffuser.families.locomotion.simulator import LocomotionSimulator
 from adaptdiffuser.plots import save_series_picture
@@ -24,7 +24,7 @@ def episode_returns(traj: Trajectories) -> np.ndarray:
     return np.bincount(index, weights=traj.reward.astype(np.float64))
 
 
-class LocomotionFamily(Family):
+class LocomotionFamily(Family[LocomotionTaskParams]):
     """Hopper, Walker2d and HalfCheetah (gymnasium MuJoCo ``-v5``) with D4RL-recipe datasets regenerated here:
     plans start at the current state, are guided by a learned value and replanned at every step."""
 
@@ -33,14 +33,14 @@ class LocomotionFamily(Family):
     normalizer_kind = "gaussian"
     uses_value_function = True
 
-    def make_simulator(self, task: TaskParams | str) -> LocomotionSimulator:
+    def make_simulator(self, task: TaskParams[LocomotionTaskParams] | str) -> LocomotionSimulator:
         """The simulator of a task (or a task name like ``hopper-medium``)."""
         name = getattr(task, "name", task)
         env_id, _ = parse_task_name(name)
         steps = task.settings.episode_steps if isinstance(task, TaskParams) else 1000
         return LocomotionSimulator(env_id, episode_steps=steps)
 
-    def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
+    def collect(self, task: TaskParams[LocomotionTaskParams], files: TaskFiles, progress: bool) -> Trajectories:
         """Train the behaviour policies (saved under ``models/<task>/collect``; a medium search killed midway goes on
         from ``files.collect_resume``) and record the dataset."""
         from adaptdiffuser.families.locomotion.behaviour import collect_locomotion_dataset
@@ -48,7 +48,7 @@ class LocomotionFamily(Family):
         return collect_locomotion_dataset(task.name, files.collect, task.settings.behaviour, progress,
                                           resume_path=files.collect_resume, resume_tag=files.code)  # fmt: skip
 
-    def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
+    def reference(self, task: TaskParams[LocomotionTaskParams], files: TaskFiles, progress: bool) -> dict[str, Any]:
         """D4RL's random and expert returns (the score's 0 and 100), and beside them, on the evaluation seeds and
         episode length: our uniform random policy, our medium behaviour policy, and the dataset's episodes."""
         from adaptdiffuser.families.locomotion.behaviour import (
@@ -86,10 +86,12 @@ class LocomotionFamily(Family):
         }
         return ref
 
-    def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
+    def controller(
+        self, task: TaskParams[LocomotionTaskParams], planner: Any, files: TaskFiles, device: Any
+    ) -> Controller:
         """Diffuser's value-guided controller: N plans from the current state, the first action of the best."""
         from adaptdiffuser.diffusion.guidance import ValueGuidance
-        from adaptdiffuser.planning import ValuePlanningController
+        from adaptdiffuser.families.locomotion.controller import ValuePlanningController
         from adaptdiffuser.value_training import load_value
 
         value_net, _ = load_value(files.value, device)
@@ -115,13 +117,13 @@ class LocomotionFamily(Family):
 
         return selected_segments(self.make_simulator(task), task, judgement, generator)
 
-    def from_external(self, task: TaskParams, raw: Any) -> Trajectories:
+    def from_external(self, task: TaskParams[LocomotionTaskParams], raw: Any) -> Trajectories:
         """D4RL's or Minari's MuJoCo data of the task's robot (``-v5`` dimensions)."""
         from adaptdiffuser.families.locomotion.external import locomotion_trajectories
 
         return locomotion_trajectories(task, self.make_simulator(task), raw)
 
-    def export_spec(self, task: TaskParams) -> tuple[Any, Any, Any]:
+    def export_spec(self, task: TaskParams[LocomotionTaskParams]) -> tuple[Any, Any, Any]:
         from adaptdiffuser.families.locomotion.external import locomotion_export_spec
 
         return locomotion_export_spec(self.make_simulator(task))
@@ -133,12 +135,18 @@ class LocomotionFamily(Family):
         }
 
     def save_picture(
-        self, task: TaskParams, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None
+        self,
+        task: TaskParams[LocomotionTaskParams],
+        path: Path,
+        plan: np.ndarray | None,
+        executed: np.ndarray,
+        title: str,
+        goal: Any = None,
     ) -> None:
         """The torso height and angle (the first two observation dims) over the episode, and over the first plan."""
         save_series_picture(path, executed, plan, ["torso height", "torso angle"], title)
 
-    def describe(self, task: TaskParams) -> dict[str, Any]:
+    def describe(self, task: TaskParams[LocomotionTaskParams]) -> dict[str, Any]:
         env_id, dataset = parse_task_name(task.name)
         return {"env_id": env_id, "dataset": dataset, "episode_steps": task.settings.episode_steps}
 

@@ -153,7 +153,7 @@ class LocomotionTaskParams(BaseModel):
         b = self.behaviour
         return f"{b.algorithm} behaviour policy to score {b.medium_score:g}, {b.dataset_steps} dataset steps per part"
 
-    def tiny(self, task: TaskParams) -> dict[str, Any]:
+    def tiny(self, task: TaskParams[LocomotionTaskParams]) -> dict[str, Any]:
         """This family's keys at tiny scale (``adaptdiffuser profile NAME --tiny``): a few PPO updates with no
         score band, a few hundred dataset steps, two value steps, two samples per decision guided once, episodes
         one plan long."""
@@ -183,7 +183,7 @@ class LocomotionTaskParams(BaseModel):
         except ValueError as err:
             raise ConfigError(f"task.{name}: {err}") from None
 
-    def check(self, task: TaskParams, params: Params) -> None:
+    def check(self, task: TaskParams[LocomotionTaskParams], params: Params) -> None:
         """Episodes at least one plan long; a warm start within the diffusion chain."""
         where = f"task.{task.name}"
         h = task.diffusion.horizon

@@ -25,7 +25,7 @@ from adaptdiffuser.families.maze2d.generation import (
     split_task_trajectories,
     task_trajectories,
 )
-from adaptdiffuser.families.maze2d.params import EvolutionSettings
+from adaptdiffuser.families.maze2d.params import EvolutionSettings, Maze2DTaskParams
 from adaptdiffuser.families.maze2d.rollouts import (
     ERROR_COLUMN,
     reached_goal,
@@ -41,7 +41,7 @@ from adaptdiffuser.planning import Planner
 
 def generate_navigation_data(
     env: Maze2D,
-    task: TaskParams,
+    task: TaskParams[Maze2DTaskParams],
     planner: Planner,
     cfg: GenerateParams,
     alpha: float,
@@ -90,7 +90,7 @@ def generation_tasks(env: Maze2D, settings: EvolutionSettings, n: int, seed: int
 
 def generate_rollout_data(
     env: Maze2D,
-    task: TaskParams,
+    task: TaskParams[Maze2DTaskParams],
     planner: Planner,
     tasks: NavigationTasks,
     cfg: GenerateParams,
@@ -133,7 +133,12 @@ def generate_rollout_data(
 
 
 def judge_navigation_data(
-    env: Maze2D, task: TaskParams, generated: Trajectories, cfg: DiscriminateParams, rule: Any, progress: bool
+    env: Maze2D,
+    task: TaskParams[Maze2DTaskParams],
+    generated: Trajectories,
+    cfg: DiscriminateParams,
+    rule: Any,
+    progress: bool,
 ) -> Judgement:
     """Track every plan from its first state with the plan follower; select navigation plans by ``rule`` and coin
     plans that pick their coin and then reach the goal. Rollouts are judged as executed
@@ -171,7 +176,11 @@ def rollout_trajectory(
 
 
 def judge_rollouts(
-    env: Maze2D, task: TaskParams, generated: Trajectories, cfg: DiscriminateParams, rule: SelectionRule
+    env: Maze2D,
+    task: TaskParams[Maze2DTaskParams],
+    generated: Trajectories,
+    cfg: DiscriminateParams,
+    rule: SelectionRule,
 ) -> Judgement:
     """Rollouts were executed as they were made, so every one "tracks": each is scored by the protocol's reward
     of its states (against its own goal) and its real length (:func:`real_length`); navigation rollouts are kept
@@ -213,7 +222,7 @@ def stay_after_arrival(trajectory: TrackedTrajectory, coin: np.ndarray | None, r
 
 
 def selected_navigation_data(
-    task: TaskParams, generated: Trajectories, judgement: Judgement, generator: dict[str, Any]
+    task: TaskParams[Maze2DTaskParams], generated: Trajectories, judgement: Judgement, generator: dict[str, Any]
 ) -> Trajectories:
     """The kept executed trajectories, each row naming its task. Kept rollouts (all of them end at the goal) go on
     at rest at the goal for a horizon less one state, so every step of a rollout starts a training window that

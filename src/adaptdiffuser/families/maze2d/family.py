@@ -24,7 +24,7 @@ if TYPE_CHECKING:
 D4RL_REFERENCE = {"umaze": (23.85, 161.86), "medium": (13.13, 277.39), "large": (6.7, 273.99)}
 
 
-class Maze2DFamily(Family):
+class Maze2DFamily(Family[Maze2DTaskParams]):
     """Point-mass navigation: plans inpaint the start and the goal, and a PD controller follows the planned states."""
 
     name = "maze2d"
@@ -32,7 +32,7 @@ class Maze2DFamily(Family):
     normalizer_kind = "minmax"
     unseen_task = Maze2DTaskParams.UNSEEN_TASK
 
-    def make_simulator(self, task: TaskParams) -> Maze2D:
+    def make_simulator(self, task: TaskParams[Maze2DTaskParams]) -> Maze2D:
         """A fresh simulator: protocol from ``env``, expert gains from ``expert``, plan-follower gains from
         ``follower``."""
         e, x, f = task.settings.env, task.settings.expert, task.settings.follower
@@ -52,7 +52,7 @@ class Maze2DFamily(Family):
             tracking_d_gain=f.d_gain,
         )
 
-    def collect(self, task: TaskParams, files: TaskFiles, progress: bool) -> Trajectories:
+    def collect(self, task: TaskParams[Maze2DTaskParams], files: TaskFiles, progress: bool) -> Trajectories:
         """D4RL's waypoint expert as one stream of ``collect.steps`` steps, cut into episodes at each new goal."""
         env = self.make_simulator(task)
         c = task.settings.collect
@@ -71,7 +71,7 @@ class Maze2DFamily(Family):
         )
         return traj
 
-    def reference(self, task: TaskParams, files: TaskFiles, progress: bool) -> dict[str, Any]:
+    def reference(self, task: TaskParams[Maze2DTaskParams], files: TaskFiles, progress: bool) -> dict[str, Any]:
         """R_min (uniform random actions) and R_max (the waypoint expert) under the protocol, on the evaluation
         seeds; D4RL's own figures beside them for the standard mazes."""
         ev = task.evaluate
@@ -94,7 +94,7 @@ class Maze2DFamily(Family):
             ref["d4rl_r_min"], ref["d4rl_r_max"] = D4RL_REFERENCE[e.maze]
         return ref
 
-    def controller(self, task: TaskParams, planner: Any, files: TaskFiles, device: Any) -> Controller:
+    def controller(self, task: TaskParams[Maze2DTaskParams], planner: Any, files: TaskFiles, device: Any) -> Controller:
         from adaptdiffuser.families.maze2d.execution import PlannerController
 
         return PlannerController(planner, task.evaluate.seed, task.planner.replan_every)
@@ -110,7 +110,9 @@ class Maze2DFamily(Family):
         """100 x the share of cases that pick the coin and reach the goal."""
         return 100.0 * float(metrics["both_rate"])
 
-    def selection_rule(self, task: TaskParams, cfg: DiscriminateParams, recipe: str = "plans") -> SelectionRule:
+    def selection_rule(
+        self, task: TaskParams[Maze2DTaskParams], cfg: DiscriminateParams, recipe: str = "plans"
+    ) -> SelectionRule:
         """The discriminator's rule for the navigation tasks of ``task``'s evolution: under ``rule: paper`` the
         appendix's thresholds for its maze, else the generic rule ``cfg.rule`` names; for data made by the
         ``rollouts`` recipe, among the rollouts that reach their goal on their real length (``RolloutRule``), the
@@ -161,20 +163,26 @@ class Maze2DFamily(Family):
         return {"success_rate": float(np.mean(result.final_success))}
 
     def save_picture(
-        self, task: TaskParams, path: Path, plan: np.ndarray | None, executed: np.ndarray, title: str, goal: Any = None
+        self,
+        task: TaskParams[Maze2DTaskParams],
+        path: Path,
+        plan: np.ndarray | None,
+        executed: np.ndarray,
+        title: str,
+        goal: Any = None,
     ) -> None:
         save_plan_picture(self.make_simulator(task), path, plan, executed, title, goal=goal)
 
-    def describe(self, task: TaskParams) -> dict[str, Any]:
+    def describe(self, task: TaskParams[Maze2DTaskParams]) -> dict[str, Any]:
         return {"maze": task.settings.maze_name, "episode_steps": task.settings.episode_steps}
 
-    def from_external(self, task: TaskParams, raw: Any) -> Trajectories:
+    def from_external(self, task: TaskParams[Maze2DTaskParams], raw: Any) -> Trajectories:
         """D4RL's Maze2D files (converted from D4RL's coordinates) or Minari's PointMaze datasets."""
         from adaptdiffuser.families.maze2d.external import maze_trajectories
 
         return maze_trajectories(task, self.make_simulator(task), raw)
 
-    def export_spec(self, task: TaskParams) -> tuple[Any, Any, Any]:
+    def export_spec(self, task: TaskParams[Maze2DTaskParams]) -> tuple[Any, Any, Any]:
         from adaptdiffuser.families.maze2d.external import maze_export_spec
 
         return maze_export_spec(task, self.make_simulator(task))

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -22,6 +22,10 @@ from adaptdiffuser.families.maze2d.execution import PlannerController
 from adaptdiffuser.families.maze2d.simulator import Cell, Maze2D, bfs_distances, shortest_path
 from adaptdiffuser.planning import Planner
 from adaptdiffuser.plots import save_figure
+
+if TYPE_CHECKING:
+    from adaptdiffuser.config import TaskParams
+    from adaptdiffuser.families.maze2d.params import Maze2DTaskParams
 
 #: where the coin lies relative to the shortest start -> goal path
 COIN_KINDS = ("on_path", "off_path", "behind_start")
@@ -197,7 +201,7 @@ def save_coin_picture(
 
 def evaluate_gold_coin(
     make_env: Callable[[], Maze2D],
-    task: Any,
+    task: TaskParams[Maze2DTaskParams],
     planner: Planner,
     alpha: float,
     ref: dict,

@@ -157,7 +157,7 @@ class Maze2DTaskParams:
         """The unseen task's evaluation, one line (``adaptdiffuser check``)."""
         return f"{self.gold_coin.cases_per_kind} gold-coin cases per kind"
 
-    def tiny(self, task: TaskParams) -> dict[str, Any]:
+    def tiny(self, task: TaskParams[Maze2DTaskParams]) -> dict[str, Any]:
         """This family's keys at tiny scale (``adaptdiffuser profile NAME --tiny``): expert data enough for a few
         episodes of one plan's length, one gold-coin case per kind."""
         return {
@@ -178,7 +178,7 @@ class Maze2DTaskParams:
             return CUSTOM_EPISODE_STEPS
         return EPISODE_STEPS.get(self.env.maze, CUSTOM_EPISODE_STEPS)
 
-    def check(self, task: TaskParams, params: Params) -> None:
+    def check(self, task: TaskParams[Maze2DTaskParams], params: Params) -> None:
         """Episodes at least one plan long; the paper's selection rule only where it has thresholds; rollouts
         replan within a plan's length and are judged as executed."""
         where = f"task.{task.name}"
@@ -205,7 +205,7 @@ class Maze2DTaskParams:
                 self._check_rollouts(task, phase)
 
     @staticmethod
-    def _check_rollouts(task: TaskParams, phase: PhaseParams) -> None:
+    def _check_rollouts(task: TaskParams[Maze2DTaskParams], phase: PhaseParams) -> None:
         where = f"phases.{phase.name}"
         h = task.diffusion.horizon
         if phase.generate.replan_every > h:
