@@ -17,7 +17,6 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-import mlflow
 import numpy as np
 import torch
 
@@ -32,7 +31,7 @@ from adaptdiffuser.layout import model_dir, phase_models_dir, seed_name
 from adaptdiffuser.stages.common import source_digest
 from adaptdiffuser.stages.training_data import expert_training_data
 from adaptdiffuser.stages.value_function import run_value
-from adaptdiffuser.tooling.mlflow_logging import log_params, stage_run
+from adaptdiffuser.tooling.run_records import stage_run
 
 #: what the import writes beside the seed folders: the source folder, each seed's digest and data check
 IMPORT_SUMMARY = "import.json"
@@ -153,13 +152,13 @@ def run_import_model(params: Params, task_name: str, root: Path, device: torch.d
         raise StageError(f"pretrained.{task.name}: {folder} is not a folder (it should hold seed<s>/ model folders)")
     family = get_family(task.family)
     logged = {"task": task.section("settings"), "pretrained": str(folder), "seeds": list(params.seeds)}
-    with stage_run(task.name, "import-model", 0, logged, root):
+    with stage_run(task.name, "import-model", 0, logged, root) as run:
         seeds = {seed: check_seed(params, task, folder, seed, root) for seed in params.seeds}
         for seed in params.seeds:
             with atomic_dir(root / model_dir(task.name, 0, seed)) as tmp:
                 shutil.copytree(folder / seed_name(seed), tmp, dirs_exist_ok=True)
-        log_params({f"seed{seed}.sha256": entry["sha256"] for seed, entry in seeds.items()})
-        mlflow.log_metrics({f"seed{seed}.same_data": float(entry["same_data"]) for seed, entry in seeds.items()})
+        run.log_params({f"seed{seed}.sha256": entry["sha256"] for seed, entry in seeds.items()})
+        run.log_metrics({f"seed{seed}.same_data": float(entry["same_data"]) for seed, entry in seeds.items()})
         summary = {"imported": True, "folder": str(folder), "seeds": {seed_name(s): e for s, e in seeds.items()}}
         out = root / phase_models_dir(task.name, 0)
         write_json(out / IMPORT_SUMMARY, summary)
