@@ -117,7 +117,16 @@ def test_a_model_of_another_shape_or_normalizer_is_refused_in_one_line(trained: 
     ema = torch.load(bad / "seed0" / "ema.pt", weights_only=True)
     torch.save({name: value[..., :1] for name, value in ema.items()}, bad / "seed0" / "ema.pt")
     assert "seed0's weights do not load into task maze2d-umaze's model" in _refused(maze_params(root, str(bad)), root)
+    # a truncated weights file (a copy cut short): an unpickling error, told in one line too
+    shutil.copytree(trained, bad, dirs_exist_ok=True)
+    (bad / "seed0" / "ema.pt").write_bytes((trained / "seed0" / "ema.pt").read_bytes()[:100])
+    assert "seed0's weights do not load into task maze2d-umaze's model" in _refused(maze_params(root, str(bad)), root)
+    # a config that is not an object of settings
+    shutil.copytree(trained, bad, dirs_exist_ok=True)
+    (bad / "seed0" / "config.json").write_text("[]")
+    assert "seed0/config.json is not a JSON object" in _refused(maze_params(root, str(bad)), root)
     # not a model folder at all
+    shutil.copytree(trained, bad, dirs_exist_ok=True)
     (bad / "seed0" / "model.pt").unlink()
     assert "is not a model folder: no model.pt" in _refused(maze_params(root, str(bad)), root)
 
@@ -173,6 +182,7 @@ def test_pretrained_and_pretrain_tasks_are_checked(tmp_path: Path) -> None:
         ({"pretrained": {TASK: "/x"}}, "pretrain_tasks: must list the tasks of 'tasks' that have no pretrained"),
         ({"pretrained": {"hopper-medium": "/x"}}, "pretrained.hopper-medium: 'hopper-medium' is not one of tasks"),
         ({"pretrained": {TASK: " "}, "pretrain_tasks": []}, f"pretrained.{TASK}: is empty"),
+        ({"pretrained": {TASK: "~/phase0"}, "pretrain_tasks": []}, f"pretrained.{TASK}: '~/phase0' starts with ~"),
         ({"pretrain_tasks": []}, "pretrain_tasks: must list the tasks of 'tasks' that have no pretrained folder"),
     ]
     for change, message in bad:

@@ -273,6 +273,11 @@ def check_model_sources(p: Params) -> None:
             )
         if not folder.strip():
             raise ConfigError(f"pretrained.{name}: is empty; name the folder that holds its seed<s>/ models")
+        if folder.startswith("~"):
+            raise ConfigError(
+                f"pretrained.{name}: {folder!r} starts with ~, which DVC does not expand in a dependency; write the "
+                "path in full or relative to the project"
+            )
     for name in trained:
         if name not in p.tasks:
             raise ConfigError(f"pretrain_tasks: {name!r} is not one of tasks {list(p.tasks)}; remove it")

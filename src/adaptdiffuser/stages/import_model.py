@@ -44,7 +44,7 @@ def pretrained_folder(params: Params, task: str, root: Path) -> Path:
     folder = params.pretrained.get(task)
     if folder is None:
         raise ConfigError(f"pretrained: has no entry for task {task}; add pretrained.{task}: <folder of seed<s>/>")
-    path = Path(folder).expanduser()
+    path = Path(folder)
     return path if path.is_absolute() else root / path
 
 
@@ -114,6 +114,8 @@ def check_seed(params: Params, task: TaskParams, folder: Path, seed: int, root: 
     if missing:
         raise StageError(f"{where}: {src} is not a model folder: no {', '.join(missing)}")
     config = read_json(src / "config.json")
+    if not isinstance(config, dict):
+        raise StageError(f"{where}: {src.name}/config.json is not a JSON object of the model's settings")
     traj, expert = expert_training_data(task, root, seed)
     meta = traj.metadata
     shape = check_shape(config, task, meta["obs_dim"], meta["act_dim"])
@@ -121,7 +123,7 @@ def check_seed(params: Params, task: TaskParams, folder: Path, seed: int, root: 
         raise StageError(f"{where}: {src.name} does not have task {task.name}'s shape: {'; '.join(shape)}")
     try:
         load_bundle(src)
-    except (RuntimeError, KeyError, TypeError, ValueError) as err:
+    except Exception as err:  # a truncated or foreign file: unpickling, EOF, shape and key errors alike
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise StageError(f"{where}: {src.name}'s weights do not load into task {task.name}'s model: {first}") from None
     fitted = fit_normalizer(get_family(task.family).normalizer_kind, joint_array(traj)).state_dict()
