@@ -195,3 +195,85 @@ def test_pending_records_are_ignored_by_git_and_dvc(tmp_path: Path) -> None:
     for tool in ("git", "dvc"):
         for rel in paths:
             assert subprocess.run([tool, "check-ignore", "-q", rel], cwd=tmp_path, env=env).returncode == 0, (tool, rel)
+
+
+STOPPED_CHILD = """
+import sys, time
+from pathlib import Path
+from adaptdiffuser.stop_signals import DeferredStop
+from adaptdiffuser.tooling.run_records import stage_run
+
+root, deferred = Path(sys.argv[1]), sys.argv[2] == "deferred"
+with stage_run("maze2d-umaze", "pretrain", 0, {}, root, seed=0) as run:
+    run.log_metric("train_loss", 0.5, step=1)
+    if deferred:  # a training loop that keeps a resume state: the step ends, then the signal takes its course
+        with DeferredStop() as stop:
+            print("ready", flush=True)
+            while stop.received is None:
+                time.sleep(0.01)
+            run.log_metric("train_loss", 0.25, step=2)
+            stop.deliver()
+    print("ready", flush=True)
+    time.sleep(60)
+print("not reached", flush=True)
+"""
+
+
+@pytest.mark.parametrize("loop", ["plain", "deferred"])
+def test_a_stage_stopped_by_sigterm_ends_by_it_with_its_record_written_killed(
+    store: MlflowClient, tmp_path: Path, loop: str
+) -> None:
+    """`adaptdiffuser run stop` (SIGTERM) on a stage, with or without a training loop's DeferredStop inside: the
+    process still ends by the signal, and its record, metrics so far, is written KILLED and logged KILLED."""
+    import signal
+
+    (tmp_path / "child.py").write_text(STOPPED_CHILD)
+    child = subprocess.Popen(
+        [sys.executable, str(tmp_path / "child.py"), str(tmp_path), loop],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    assert child.stdout is not None
+    assert child.stdout.readline().strip() == "ready"
+    child.send_signal(signal.SIGTERM)
+    rest, _ = child.communicate(timeout=60)
+    assert child.returncode == -signal.SIGTERM and "not reached" not in rest, rest
+    (folder,) = pending_records(tmp_path)
+    record = read_record(folder)
+    steps = [(m["step"], m["value"]) for m in record["metrics"]]
+    assert record["status"] == "KILLED" and steps == ([(1, 0.5)] if loop == "plain" else [(1, 0.5), (2, 0.25)])
+    assert [p.name for p in (tmp_path / PENDING).iterdir() if p.name.endswith(".tmp")] == []
+
+    logged = log_pending(tmp_path)
+    run = store.get_run(logged[record["id"]])
+    assert run.info.status == "KILLED" and run.info.end_time == record["end_ms"]
+    assert [m.value for m in store.get_metric_history(run.info.run_id, "train_loss")] == [s[1] for s in steps]
+    assert store.get_run(run.data.tags["mlflow.parentRunId"]).info.status == "KILLED"
+
+
+def test_a_stage_ended_normally_gives_sigterm_back_to_its_former_handler(tmp_path: Path) -> None:
+    import signal
+
+    before = signal.getsignal(signal.SIGTERM)
+    with stage_run(TASK, "collect", 0, {}, tmp_path):
+        assert signal.getsignal(signal.SIGTERM) is not before  # the record writer, over the default
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_log_pending_deletes_the_hidden_folders_of_dead_writers_only(tmp_path: Path) -> None:
+    """A stage killed by SIGKILL (or out of memory) leaves its hidden folder; the next logger deletes it, not the
+    folder of a stage that still runs, of another host, or without a writer file."""
+    import socket
+
+    from adaptdiffuser.tooling.run_records import WRITER_FILE
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    host = socket.gethostname()
+    writers = {"dead": (host, int(dead.stdout)), "live": (host, os.getpid()), "other-host": (f"{host}-x", 1)}
+    for name, (writer_host, pid) in writers.items():
+        partial = tmp_path / PENDING / f".{name}.tmp"
+        partial.mkdir(parents=True)
+        (partial / WRITER_FILE).write_text(json.dumps({"host": writer_host, "pid": pid}))
+    (tmp_path / PENDING / ".no-writer.tmp").mkdir()
+    assert log_pending(tmp_path) == {}
+    left = sorted(p.name for p in (tmp_path / PENDING).iterdir())
+    assert left == [".live.tmp", ".no-writer.tmp", ".other-host.tmp"]
