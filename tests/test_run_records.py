@@ -277,3 +277,79 @@ def test_log_pending_deletes_the_hidden_folders_of_dead_writers_only(tmp_path: P
     assert log_pending(tmp_path) == {}
     left = sorted(p.name for p in (tmp_path / PENDING).iterdir())
     assert left == [".live.tmp", ".no-writer.tmp", ".other-host.tmp"]
+
+
+def test_a_record_that_cannot_be_logged_is_set_aside_and_the_others_are_logged(
+    store: MlflowClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An unreadable record.json and a model whose class no longer unpickles go to mlflow-pending/.failed/ with their
+    error, one warning line each, and never stop the good record nor the next `summarize`."""
+    from adaptdiffuser.tooling.mlflow_logging import FAILED_DIR
+
+    (tmp_path / "gone_model.py").write_text("import torch\nclass Gone(torch.nn.Linear):\n    pass\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import gone_model  # a model class that a later commit renames
+
+    out = tmp_path / "bundle"
+    out.mkdir()
+    for name in ("config.json", "normalizer.json"):
+        (out / name).write_text("{}")
+    with stage_run(TASK, "pretrain", 0, {}, tmp_path, seed=0) as gone:
+        gone.log_model(gone_model.Gone(2, 2), out, TASK, "phase0", 0, True, {})
+    monkeypatch.delitem(sys.modules, "gone_model")
+    (tmp_path / "gone_model.py").unlink()
+    with stage_run(TASK, "collect", 0, {}, tmp_path) as corrupt:
+        pass
+    (tmp_path / PENDING / corrupt.id / "record.json").write_text('{"id": ')
+    with stage_run(TASK, "reference", 0, {}, tmp_path) as good:
+        good.log_metric("m", 2.0)
+
+    logged = log_pending(tmp_path)
+    assert list(logged) == [good.id] and sorted(logged.failed) == sorted([gone.id, corrupt.id])
+    assert store.get_run(logged[good.id]).data.metrics == {"m": 2.0} and pending_records(tmp_path) == []
+    warnings = capsys.readouterr().err.strip().splitlines()
+    assert len(warnings) == 2 and all(line.startswith("warning: run record ") for line in warnings)
+    assert "ModuleNotFoundError" in logged.failed[gone.id] and "unreadable" in logged.failed[corrupt.id]
+    for record_id in (gone.id, corrupt.id):
+        error = (tmp_path / PENDING / FAILED_DIR / record_id / "error.txt").read_text()
+        assert error.strip() == logged.failed[record_id]
+    runs = store.search_runs([store.get_experiment_by_name(TASK).experiment_id])
+    assert sorted(r.data.tags["stage"] for r in runs) == ["pipeline", "reference"]
+    again = log_pending(tmp_path)
+    assert again == {} and again.failed == {}
+
+
+def test_an_unreachable_store_raises_and_leaves_every_record_waiting(
+    store: MlflowClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with stage_run(TASK, "collect", 0, {}, tmp_path):
+        pass
+    # a database under a file: no store at all
+    monkeypatch.setenv("MLFLOW_TRACKING_URI", f"sqlite:///{tmp_path / 'params.yaml' / 'mlflow.db'}")
+    with pytest.raises(Exception):  # noqa: B017, PT011 - whatever the store raises, it is no record's error
+        log_pending(tmp_path)
+    assert len(pending_records(tmp_path)) == 1 and not (tmp_path / PENDING / ".failed").exists()
+
+
+def test_the_parent_run_ends_after_a_crash_before_it_and_at_its_last_stage_end(
+    store: MlflowClient, tmp_path: Path
+) -> None:
+    """A logger that crashed after ending a stage's run but before ending the parent leaves it RUNNING: the retry
+    ends it. Its end is the latest stage end, not that of the stage that started last."""
+    import time
+    from contextlib import ExitStack
+
+    with ExitStack() as stack:
+        outer = stack.enter_context(stage_run(TASK, "collect", 0, {}, tmp_path))
+        with stage_run(TASK, "reference", 0, {}, tmp_path) as inner:
+            pass
+        time.sleep(0.02)
+    assert outer.data["start_ms"] <= inner.data["start_ms"] and inner.data["end_ms"] < outer.data["end_ms"]
+    (first, second) = pending_records(tmp_path)
+    _log_record(first, tmp_path)
+    run_id = _log_record(second, tmp_path)
+    parent = store.get_run(run_id).data.tags["mlflow.parentRunId"]
+    assert store.get_run(parent).info.end_time == outer.data["end_ms"]
+    store.update_run(parent, status="RUNNING")  # as a crash right after the stage run's end left it
+    log_pending(tmp_path)
+    assert store.get_run(parent).info.status == "FINISHED" and pending_records(tmp_path) == []
