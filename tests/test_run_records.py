@@ -353,3 +353,66 @@ def test_the_parent_run_ends_after_a_crash_before_it_and_at_its_last_stage_end(
     store.update_run(parent, status="RUNNING")  # as a crash right after the stage run's end left it
     log_pending(tmp_path)
     assert store.get_run(parent).info.status == "FINISHED" and pending_records(tmp_path) == []
+
+
+def test_a_sweep_trial_keeps_its_outcome_and_its_run_ends_when_logging_fails(
+    store: MlflowClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A pruned trial whose records cannot be logged (here a lock that is a folder) stays pruned, its run KILLED,
+    one warning line; the records wait."""
+    import optuna
+
+    from adaptdiffuser.tooling.optuna_sweep import end_trial_run
+
+    experiment_id = store.create_experiment(TASK)
+    trial_run = store.create_run(experiment_id, tags={"sweep": "s"}).info.run_id
+    trial_dir = tmp_path / "sweeps" / "s" / "trial_0"
+    monkeypatch.setenv(PARENT_RUN_ENV, trial_run)
+    with stage_run(TASK, "generate", 1, {}, trial_dir):
+        pass
+    (trial_dir / PENDING / ".lock").mkdir()
+    with pytest.raises(optuna.TrialPruned, match="median"):
+        try:
+            raise optuna.TrialPruned("below the running median")
+        finally:
+            end_trial_run(store, trial_run, "KILLED", trial_dir, tmp_path)
+    assert store.get_run(trial_run).info.status == "KILLED" and len(pending_records(trial_dir)) == 1
+    (warning,) = capsys.readouterr().err.strip().splitlines()
+    assert warning.startswith(f"warning: {trial_dir}: run records not logged") and "IsADirectoryError" in warning
+
+
+def test_the_mlflow_log_command_takes_paths_logs_sweep_trials_and_exits_2_on_a_bad_record(
+    store: MlflowClient, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`adaptdiffuser mlflow-log` with no path logs the project's records and those its sweep trials left (to the
+    project's store, not a store in the trial's folder); given a pending folder, that one; a bad record: exit 2."""
+    from typer.testing import CliRunner
+
+    from adaptdiffuser.cli import app
+
+    monkeypatch.delenv("MLFLOW_TRACKING_URI")  # the project's own store, <project>/mlflow.db
+    experiment_id = store.create_experiment(TASK)
+    trial_run = store.create_run(experiment_id, tags={"sweep": "s"}).info.run_id
+    trial_dir = tmp_path / "sweeps" / "s" / "trial_3"
+    with monkeypatch.context() as env:
+        env.setenv(PARENT_RUN_ENV, trial_run)
+        with stage_run(TASK, "generate", 1, {}, trial_dir) as trial_stage:
+            pass
+    with stage_run(TASK, "collect", 0, {}, tmp_path) as bad:
+        pass
+    (tmp_path / PENDING / bad.id / "record.json").write_text("[]")
+    monkeypatch.chdir(tmp_path)
+    out = CliRunner().invoke(app, ["mlflow-log"])
+    assert out.exit_code == 2 and f"{tmp_path}: {bad.id}: record.json is not a mapping" in out.output, out.output
+    (run,) = store.search_runs([experiment_id], "tags.stage = 'generate'")
+    assert run.data.tags["mlflow.parentRunId"] == trial_run and run.data.tags["record_id"] == trial_stage.id
+    assert not (trial_dir / "mlflow.db").exists() and pending_records(trial_dir) == []
+
+    elsewhere = tmp_path / "other"
+    with stage_run(TASK, "reference", 0, {}, elsewhere):
+        pass
+    out = CliRunner().invoke(app, ["mlflow-log", str(elsewhere / PENDING)])
+    uri = f"sqlite:///{elsewhere / 'mlflow.db'}"  # its own store, not the one logged to before
+    assert out.exit_code == 0 and f"logged 1 stage run(s) to {uri} from {elsewhere}\n" in out.output, out.output
+    assert pending_records(elsewhere) == [] and (elsewhere / "mlflow.db").is_file()
+    assert CliRunner().invoke(app, ["mlflow-log", str(tmp_path / "absent")]).exit_code == 1

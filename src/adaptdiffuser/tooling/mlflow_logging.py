@@ -193,6 +193,7 @@ def log_pending(root: Path, store: Path | None = None) -> Logged:
     remove_dead_partials(root)
     if not pending_records(root):
         return logged
+    before = os.environ.get("MLFLOW_TRACKING_URI")  # set_tracking_uri sets it too: put back after, for the next store
     mlflow.set_tracking_uri(tracking_uri(store))
     with open(folder / LOCK_FILE, "a") as lock, _quiet_model_logging():
         fcntl.flock(lock, fcntl.LOCK_EX)
@@ -211,6 +212,7 @@ def log_pending(root: Path, store: Path | None = None) -> Logged:
                 shutil.rmtree(leftover, ignore_errors=True)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
+            mlflow.set_tracking_uri(before)
     return logged
 
 
