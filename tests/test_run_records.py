@@ -250,13 +250,30 @@ def test_a_stage_stopped_by_sigterm_ends_by_it_with_its_record_written_killed(
     assert store.get_run(run.data.tags["mlflow.parentRunId"]).info.status == "KILLED"
 
 
-def test_a_stage_ended_normally_gives_sigterm_back_to_its_former_handler(tmp_path: Path) -> None:
+def test_a_stage_ended_normally_gives_sigterm_back_to_its_former_handler_and_a_forked_child_writes_nothing(
+    tmp_path: Path,
+) -> None:
+    """A forked child (a data loader's worker) gets the process group's SIGTERM too: it ends by it, and the record
+    stays the stage's own, written when the stage ends."""
     import signal
 
     before = signal.getsignal(signal.SIGTERM)
-    with stage_run(TASK, "collect", 0, {}, tmp_path):
+    with stage_run(TASK, "collect", 0, {}, tmp_path) as run:
         assert signal.getsignal(signal.SIGTERM) is not before  # the record writer, over the default
+        ready, told = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # the child: waits for its SIGTERM (the fork's own start forgets a signal that came earlier)
+            os.write(told, b"r")
+            while True:
+                signal.pause()
+        assert os.read(ready, 1) == b"r"
+        os.kill(pid, signal.SIGTERM)
+        _, status = os.waitpid(pid, 0)
+        assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGTERM
+        assert (tmp_path / PENDING / f".{run.id}.tmp").is_dir() and pending_records(tmp_path) == []
+        run.log_metric("m", 1.0)
     assert signal.getsignal(signal.SIGTERM) is before
+    assert read_record(pending_records(tmp_path)[0])["status"] == "FINISHED"
 
 
 def test_log_pending_deletes_the_hidden_folders_of_dead_writers_only(tmp_path: Path) -> None:

@@ -305,14 +305,21 @@ class _RecordOnSigterm:
     """SIGTERM's handler while a stage runs (installed only over the default one): write the record KILLED, put the
     former handler back and send SIGTERM again, so that the process still ends by the signal (or the handler of an
     enclosing :func:`stage_run` writes its record in turn). A signal that arrives while the record is already being
-    written waits for the end of that (:attr:`received`)."""
+    written waits for the end of that (:attr:`received`). A forked child (a data loader's worker), which inherits the
+    handler and gets the SIGTERM of the process group too, writes nothing: the signal takes its former course there.
+    """
 
     def __init__(self, record: StageRecord, previous: Any) -> None:
         self.record, self.previous = record, previous
+        self.pid = os.getpid()
         self.closing = False  # the record is being written, or was
         self.received = False
 
     def __call__(self, signum: int, frame: FrameType | None) -> None:
+        if os.getpid() != self.pid:
+            signal.signal(signal.SIGTERM, self.previous)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
         if self.closing:
             self.received = True
             return
