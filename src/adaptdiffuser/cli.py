@@ -658,14 +658,34 @@ def times() -> None:
 
 
 @app.command("mlflow-log")
-def mlflow_log() -> None:
-    """Log the stage run records waiting in mlflow-pending/ to MLflow. The summarize stage does it at the end of a
-    pipeline run; run this after `dvc repro <stage>` of an earlier stage, or after a pipeline that failed."""
-    from adaptdiffuser.tooling.mlflow_logging import log_pending, tracking_uri
+def mlflow_log(
+    paths: Annotated[
+        list[Path] | None,
+        typer.Argument(help="project roots or mlflow-pending folders (default: this project)", show_default=False),
+    ] = None,
+) -> None:
+    """Log the stage run records waiting in mlflow-pending/ (and in its sweeps' sweeps/*/trial_*/mlflow-pending/) to
+    MLflow. The summarize stage does it at the end of a pipeline run; run this after `dvc repro <stage>` of an earlier
+    stage, or after a pipeline or sweep that failed. Exit 2 if a record could not be logged (moved to
+    mlflow-pending/.failed/<id>/ with its error.txt)."""
+    from adaptdiffuser.tooling.mlflow_logging import log_pending, pending_sources, tracking_uri
     from adaptdiffuser.tooling.run_records import redact_text
 
-    logged = log_pending(Path.cwd())
-    typer.echo(f"logged {len(logged)} stage run(s) to {redact_text(tracking_uri(Path.cwd()))}")
+    failed: list[str] = []
+    for path in paths or [Path.cwd()]:
+        if not path.is_dir():
+            typer.secho(f"error: {path} is no folder (a project root or an mlflow-pending folder)", fg="red", err=True)
+            raise typer.Exit(code=1)
+        for root, store in pending_sources(path):
+            logged = log_pending(root, store)
+            if logged or root == store:
+                typer.echo(f"logged {len(logged)} stage run(s) to {redact_text(tracking_uri(store))} from {root}")
+            failed += [f"{root}: {record}: {error}" for record, error in logged.failed.items()]
+    if failed:
+        typer.secho(f"{len(failed)} record(s) not logged, moved to mlflow-pending/.failed/:", fg="red", err=True)
+        for line in failed:
+            typer.secho(f"  {line}", fg="red", err=True)
+        raise typer.Exit(code=2)
 
 
 @app.command()

@@ -121,7 +121,7 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
     import torch
     from mlflow.tracking import MlflowClient
 
-    from adaptdiffuser.tooling.mlflow_logging import ensure_experiment, log_pending
+    from adaptdiffuser.tooling.mlflow_logging import ensure_experiment
 
     torch.set_num_threads(ctx.threads)
     os.environ["MLFLOW_TRACKING_URI"] = ctx.tracking_uri
@@ -174,10 +174,25 @@ def _worker(ctx: TrialContext, study_name: str, n_trials: int, worker: int) -> N
             raise
         finally:
             os.environ.pop(PARENT_RUN_ENV, None)
-            log_pending(trial_dir)  # the run records of the trial's stages, nested under the trial's run
-            client.set_terminated(run_id, status)
+            end_trial_run(client, run_id, status, trial_dir, ctx.root)
 
     study.optimize(objective, n_trials=n_trials, catch=(StageError,))
+
+
+def end_trial_run(client: Any, run_id: str, status: str, trial_dir: Path, root: Path) -> None:
+    """After a trial: log the run records of its stages (nested under the trial's run ``run_id``) to the project's
+    store, then end that run with ``status``. A logging error is one warning line, never the trial's outcome (its
+    value, or its pruning, stands; the records wait for ``adaptdiffuser mlflow-log``); the run is ended anyway."""
+    from adaptdiffuser.tooling.mlflow_logging import log_pending
+    from adaptdiffuser.tooling.run_records import redact_text
+
+    try:
+        log_pending(trial_dir, root)
+    except Exception as err:  # noqa: BLE001 - whatever MLflow raises, the trial's own outcome stands
+        message = redact_text(f"{type(err).__name__}: {err}".splitlines()[0])
+        print(f"warning: {trial_dir}: run records not logged to MLflow ({message})", file=sys.stderr)
+    finally:
+        client.set_terminated(run_id, status)
 
 
 def load_worker_study(

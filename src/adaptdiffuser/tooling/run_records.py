@@ -8,7 +8,10 @@ record to MLflow in start order (:func:`adaptdiffuser.tooling.mlflow_logging.log
 sweep worker after each trial, ``adaptdiffuser mlflow-log`` by hand), as the stage itself used to.
 
 A record appears whole or not at all: it is built in a hidden ``.<id>.tmp`` folder and renamed to ``<id>`` (start
-time in nanoseconds, then a random suffix, so names sort in start order) when the stage ends, FAILED if it raised.
+time in nanoseconds, then a random suffix, so names sort in start order) when the stage ends, FAILED if it raised,
+KILLED if SIGTERM stopped it (:class:`_RecordOnSigterm`: the record is written, then the signal ends the process as it
+would have). The hidden folder holds the writer's host and pid (:data:`WRITER_FILE`): the one of a process that no
+longer runs (SIGKILL, out of memory) is deleted by :func:`remove_dead_partials`.
 """
 
 from __future__ import annotations
@@ -19,11 +22,15 @@ import os
 import re
 import secrets
 import shutil
+import signal
+import socket
 import subprocess
+import threading
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 import yaml
@@ -40,6 +47,8 @@ PIPELINE_STAGE = "pipeline"
 PENDING = "mlflow-pending"
 #: a record's description inside its folder
 RECORD_FILE = "record.json"
+#: ``{"host": ..., "pid": ...}`` of the process writing a hidden ``.<id>.tmp`` record folder
+WRITER_FILE = "writer.json"
 
 #: what a secret is replaced with
 REDACTED = "***"
@@ -120,6 +129,35 @@ def pending_records(root: Path) -> list[Path]:
     if not folder.is_dir():
         return []
     return sorted(p for p in folder.iterdir() if not p.name.startswith(".") and (p / RECORD_FILE).is_file())
+
+
+def _runs(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this host (one of another user counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_dead_partials(root: Path) -> list[str]:
+    """Delete the hidden ``.<id>.tmp`` folders of :func:`pending_root` whose writer (:data:`WRITER_FILE`) was a
+    process of this host that no longer runs: a stage killed by SIGKILL or out of memory, whose record can never be
+    whole. A folder of a live process, of another host or without a writer file is left alone. The names deleted."""
+    folder = pending_root(root)
+    removed = []
+    for partial in sorted(folder.glob(".*.tmp")) if folder.is_dir() else []:
+        try:
+            writer = json.loads((partial / WRITER_FILE).read_text())
+            dead = writer["host"] == socket.gethostname() and not _runs(int(writer["pid"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if dead:
+            shutil.rmtree(partial, ignore_errors=True)
+            removed.append(partial.name)
+    return removed
 
 
 def git_commit(root: Path) -> str:
@@ -263,6 +301,36 @@ class StageRecord:
         return final
 
 
+class _RecordOnSigterm:
+    """SIGTERM's handler while a stage runs (installed only over the default one): write the record KILLED, put the
+    former handler back and send SIGTERM again, so that the process still ends by the signal (or the handler of an
+    enclosing :func:`stage_run` writes its record in turn). A signal that arrives while the record is already being
+    written waits for the end of that (:attr:`received`). A forked child (a data loader's worker), which inherits the
+    handler and gets the SIGTERM of the process group too, writes nothing: the signal takes its former course there.
+    """
+
+    def __init__(self, record: StageRecord, previous: Any) -> None:
+        self.record, self.previous = record, previous
+        self.pid = os.getpid()
+        self.closing = False  # the record is being written, or was
+        self.received = False
+
+    def __call__(self, signum: int, frame: FrameType | None) -> None:
+        if os.getpid() != self.pid:
+            signal.signal(signal.SIGTERM, self.previous)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+        if self.closing:
+            self.received = True
+            return
+        self.closing = True
+        signal.signal(signal.SIGTERM, self.previous)
+        try:
+            self.record.finish("KILLED")
+        finally:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
 def read_record(folder: Path) -> dict[str, Any]:
     """The description of the record in ``folder``."""
     return json.loads((folder / RECORD_FILE).read_text())
@@ -295,6 +363,7 @@ def stage_run(
     record_id = f"{time.time_ns():020d}-{secrets.token_hex(4)}"
     folder = pending_root(root) / f".{record_id}.tmp"
     folder.mkdir(parents=True)
+    (folder / WRITER_FILE).write_text(json.dumps({"host": socket.gethostname(), "pid": os.getpid()}))
     data: dict[str, Any] = {
         "id": record_id, "task": task, "run_name": name, "tags": loggable(tags, 5000), "params": {},
         "metrics": [], "datasets": [], "models": [], "best_alias": None, "parent_run_id": parent,
@@ -302,12 +371,27 @@ def stage_run(
     }  # fmt: skip
     record = StageRecord(folder, data)
     record.log_params(flatten(params))
+    guard = None
+    if threading.current_thread() is threading.main_thread():
+        previous = signal.getsignal(signal.SIGTERM)
+        if previous is signal.SIG_DFL or isinstance(previous, _RecordOnSigterm):
+            guard = _RecordOnSigterm(record, previous)
+            signal.signal(signal.SIGTERM, guard)
     status = "FAILED"
     try:
         yield record
         status = "FINISHED"
     finally:
-        record.finish(status)
+        if guard is None:
+            record.finish(status)
+        elif not guard.closing:  # else the handler wrote it KILLED (and the process ends by SIGTERM)
+            guard.closing = True
+            try:
+                record.finish(status)
+            finally:
+                signal.signal(signal.SIGTERM, guard.previous)
+                if guard.received:  # SIGTERM while the record was written: its course now
+                    os.kill(os.getpid(), signal.SIGTERM)
 
 
 def log_over_seeds(task: str, stage: str, phase: int, metrics: dict[str, Any], root: Path = Path(".")) -> None:
