@@ -21,7 +21,6 @@ from adaptdiffuser.config import load_params
 from adaptdiffuser.data.normalizer import GaussianNormalizer
 from adaptdiffuser.diffusion.guidance import ValueGuidance
 from adaptdiffuser.diffusion.samplers import make_sampler
-from adaptdiffuser.families.locomotion.controller import ValuePlanningController
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir, value_dir
 from adaptdiffuser.models.value_network import ValueNetwork
@@ -64,7 +63,7 @@ def main() -> None:
         sims = [family.make_simulator(task) for _ in range(episodes)]
         obs = np.stack([s.reset(np.random.default_rng(i)) for i, s in enumerate(sims)])
         for n in args.samples:
-            controller = ValuePlanningController(planner, guidance, n, seed=0)
+            controller = family.value_controller(planner, guidance, n, seed=0)
             controller.begin(sims, obs, list(range(episodes)))
             controller.act(sims, obs, 0)  # warm-up
             sync(device)

@@ -20,12 +20,11 @@ import torch
 
 from adaptdiffuser.checkpoint import ModelBundle, load_bundle, make_bundle
 from adaptdiffuser.config import GenerateParams, TaskParams, apply_profile, load_params
-from adaptdiffuser.contract import TaskFiles
+from adaptdiffuser.contract import Controller, TaskFiles
 from adaptdiffuser.data.normalizer import GaussianNormalizer, MinMaxNormalizer
 from adaptdiffuser.diffusion.guidance import Guidance, Objective, ValueGuidance
 from adaptdiffuser.diffusion.samplers import make_sampler
 from adaptdiffuser.evaluation import run_episodes
-from adaptdiffuser.families.locomotion.controller import ValuePlanningController
 from adaptdiffuser.family_registry import get_family
 from adaptdiffuser.layout import model_dir
 from adaptdiffuser.models.compiled import compile_network
@@ -147,7 +146,7 @@ class LocomotionPaths:
     """A locomotion task's value-guided controller on a batch of episodes."""
 
     task: TaskParams
-    controller: ValuePlanningController
+    controller: Controller
     sims: list
     obs: np.ndarray
 
@@ -184,7 +183,7 @@ def locomotion_paths(
     planner = Planner(bundle, sampler_, device)
     guidance = ValueGuidance(value_net, g.scale, g.n_guide_steps, g.t_stopgrad, g.scale_grad_by_std)
     warm = g.warm_start_step if warm_start else None
-    controller = ValuePlanningController(planner, guidance, samples, seed=0, warm_start_step=warm)
+    controller = family.value_controller(planner, guidance, samples, seed=0, warm_start_step=warm)
     sims = [family.make_simulator(task) for _ in range(episodes)]
     obs = np.stack([s.reset(np.random.default_rng(i)) for i, s in enumerate(sims)])
     controller.begin(sims, obs, list(range(episodes)))

@@ -91,13 +91,21 @@ class LocomotionFamily(Family[LocomotionTaskParams]):
     ) -> Controller:
         """Diffuser's value-guided controller: N plans from the current state, the first action of the best."""
         from adaptdiffuser.diffusion.guidance import ValueGuidance
-        from adaptdiffuser.families.locomotion.controller import ValuePlanningController
         from adaptdiffuser.value_training import load_value
 
         value_net, _ = load_value(files.value, device)
         g = task.settings.guide
         guidance = ValueGuidance(value_net, g.scale, g.n_guide_steps, g.t_stopgrad, g.scale_grad_by_std)
-        return ValuePlanningController(planner, guidance, g.n_samples, task.evaluate.seed, g.warm_start_step)
+        return self.value_controller(planner, guidance, g.n_samples, task.evaluate.seed, g.warm_start_step)
+
+    def value_controller(
+        self, planner: Any, guidance: Any, n_samples: int, seed: int, warm_start_step: int | None = None
+    ) -> Controller:
+        """The value-guided controller around ``planner`` and a value ``guidance`` of one's own (the benchmarks
+        time it with untrained networks): N plans from the current state, the first action of the best."""
+        from adaptdiffuser.families.locomotion.controller import ValuePlanningController
+
+        return ValuePlanningController(planner, guidance, n_samples, seed, warm_start_step)
 
     def generate(self, task, planner, files, cfg, alpha, seed, generator, progress):
         """Value-guided segments from dataset states and fresh resets (``alpha`` guides maze coins only: unused)."""
