@@ -21,6 +21,22 @@ from smoke_project import REPO, make_smoke_project, run_tool
 
 #: smoke is left out: tests/test_pipeline.py runs it through `dvc repro` itself, every stage a process of its own
 PROFILES = sorted(path.stem for path in (REPO / "profiles").glob("*.yaml") if path.stem != "smoke")
+#: profiles whose tiny run would repeat another's: the same families, recipes and stage graph, with another maze size,
+#: a subset of its tasks or seeds, or another U-Net width (each still resolves and passes every params check at tiny
+#: scale in tests/test_resolved_profiles.py); the end-to-end run is the profile's named here
+COVERED_BY = {
+    "paper-umaze": "paper-large",
+    "paper-medium": "paper-large",
+    "science-umaze": "science-large",
+    "science-medium": "science-large",
+    "science-hopper": "science-locomotion",
+    "science-halfcheetah": "science-locomotion",
+    "science-walker2d": "science-locomotion",
+    "science-walker2d-w32": "science-locomotion",
+    "science-kuka": "quick-kuka",
+}
+#: the profiles run end to end at tiny scale
+RUN = [name for name in PROFILES if name not in COVERED_BY]
 #: the profile that the committed params.yaml holds, whose run wrote the committed metrics/summary.json
 DEFAULT_PROFILE = "quick"
 
@@ -68,8 +84,24 @@ def test_tiny_keeps_the_profiles_shapes_and_shrinks_its_work(tmp_path: Path) -> 
     assert "--tiny" in (tmp_path / "tiny.yaml").read_text().splitlines()[0]
 
 
+def test_a_profile_left_out_of_the_tiny_runs_repeats_the_families_and_stages_of_the_one_that_covers_it(
+    tmp_path: Path,
+) -> None:
+    from adaptdiffuser.config import apply_profile, load_params, stage_names
+
+    def shape(name: str) -> tuple[set[str], set[str]]:
+        params = load_params(apply_profile(name, REPO / "profiles", tmp_path / f"{name}.yaml", tiny=True))
+        stages = {stage.split("@")[0] for stage in stage_names(params)}
+        return {params.resolve(task).family for task in params.tasks}, stages
+
+    assert set(COVERED_BY) < set(PROFILES) and set(COVERED_BY.values()) <= set(RUN)
+    for name, runner in COVERED_BY.items():
+        (families, stages), (run_families, run_stages) = shape(name), shape(runner)
+        assert families <= run_families and stages <= run_stages, f"{name} is not covered by {runner}'s tiny run"
+
+
 @pytest.mark.e2e
-@pytest.mark.parametrize("profile", PROFILES)
+@pytest.mark.parametrize("profile", RUN)
 def test_every_profile_runs_end_to_end_at_tiny_scale(
     profile: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
