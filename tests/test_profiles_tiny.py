@@ -54,6 +54,8 @@ def narrow_to(tasks: list[str]) -> Callable[[Path], None]:
         path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
     return edit
+
+
 #: the profile that the committed params.yaml holds, whose run wrote the committed metrics/summary.json
 DEFAULT_PROFILE = "quick"
 
@@ -96,6 +98,7 @@ def test_tiny_keeps_the_profiles_shapes_and_shrinks_its_work(tmp_path: Path) -> 
     assert b.pretrain.steps < a.pretrain.steps and b.diffusion.n_steps < a.diffusion.n_steps
     assert b.settings.collect.episodes < a.settings.collect.episodes
     assert b.evaluate.episodes == 1 and not tiny.compile.training
+    assert a.evaluate.held_out_episodes > 1 and b.evaluate.held_out_episodes == 1  # held-out states played, once
     assert [p.name for p in tiny.phases] == [full.phases[0].name] and len(full.phases) == 2
     assert tiny.phases[0].discriminate == full.phases[0].discriminate  # the phase's own settings are kept
     assert "--tiny" in (tmp_path / "tiny.yaml").read_text().splitlines()[0]

@@ -27,12 +27,12 @@ TINY_GENERATE = {"tasks": 4, "batch_size": 4}
 
 def _generic_sections(sections: Params | TaskParams) -> dict[str, Any]:
     """The generic sections (top-level or one task's) at tiny scale: diffusion and sampler steps capped, not
-    raised."""
+    raised; one held-out episode where the profile plays any."""
     return {
         "diffusion": {"n_steps": min(sections.diffusion.n_steps, TINY_DIFFUSION_STEPS)},
         "planner": {"sampler_steps": min(sections.planner.sampler_steps, TINY_SAMPLER_STEPS)},
         "pretrain": TINY_PRETRAIN,
-        "evaluate": TINY_EVALUATE,
+        "evaluate": TINY_EVALUATE | {"held_out_episodes": min(sections.evaluate.held_out_episodes, 1)},
     }
 
 

@@ -244,9 +244,8 @@ def _quarantine(record: Path, error: RecordError) -> None:
 
 
 def _read_valid(folder: Path) -> tuple[dict[str, Any], list[Any]]:
-    """The record in ``folder`` and its models (unpickled), or :class:`RecordError` naming what is wrong."""
-    import torch
-
+    """The record in ``folder`` and its models (unpickled), or :class:`RecordError` naming what is wrong. Torch is
+    imported only for a record that holds models."""
     try:
         record = read_record(folder)
     except (OSError, ValueError) as err:
@@ -262,6 +261,8 @@ def _read_valid(folder: Path) -> tuple[dict[str, Any], list[Any]]:
         raise RecordError("record.json: neither a parent run id nor a pipeline")
     modules = []
     for model in record["models"]:
+        import torch
+
         try:
             modules.append(torch.load(folder / model["folder"] / "model.pt", map_location="cpu", weights_only=False))
         except Exception as err:  # noqa: BLE001 - unpickling runs arbitrary code: any error is the record's
