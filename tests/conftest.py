@@ -91,7 +91,8 @@ def shared_fixture_group(item: pytest.Item) -> str | None:
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """End-to-end tests are slow tests. Tests that share a costly fixture run in one pytest-xdist worker
     (``--dist loadgroup`` in scripts/test.sh), so it is built once per session rather than once in each worker; the
-    smoke project's tests go first, so that the longest group does not start last."""
+    smoke project's tests go first, so that the longest group does not start last, then the other slow tests, so
+    that the quick ones fill the workers' last minutes instead of a long test running alone at the end."""
     groups: dict[str, str | None] = {}
     for item in items:
         module = item.nodeid.split("::", 1)[0]
@@ -104,7 +105,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         groups[item.nodeid] = group = shared_fixture_group(item)
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))
-    items.sort(key=lambda item: groups[item.nodeid] != SHARED_SESSION_FIXTURES[0])  # stable: order kept
+    items.sort(  # stable: the collection order is kept within each part
+        key=lambda item: (groups[item.nodeid] != SHARED_SESSION_FIXTURES[0], item.get_closest_marker("slow") is None)
+    )
 
 
 def pytest_configure(config: pytest.Config) -> None:
