@@ -78,23 +78,23 @@ def test_a_longer_curve_extends_a_shorter_one_to_the_weights_of_one_trained_from
     run_tool(["dvc", "repro", f"reference@{MAZE}"], project)
     constant = "set: {pretrain.lr_schedule: constant}"
     recipes = tmp_path / "recipes.yaml"
-    recipes.write_text(f"direct: {{steps: 1500, {constant}}}\nshort: {{steps: 1000, {constant}}}\n"
-                       f"long: {{steps: 1500, {constant}, extends: short}}\n")  # fmt: skip
+    recipes.write_text(f"direct: {{steps: 300, {constant}}}\nshort: {{steps: 200, {constant}}}\n"
+                       f"long: {{steps: 300, {constant}, extends: short}}\n")  # fmt: skip
     out_dir = tmp_path / "curves"
     study = subprocess.run(
         [sys.executable, str(REPO / "benchmarks" / "recipe_study.py"), str(project), "--task", MAZE, "--recipes",
-         str(recipes), "--training-seeds", "0", "--every", "500", "--episodes", "2", "--out-dir", str(out_dir),
+         str(recipes), "--training-seeds", "0", "--every", "100", "--episodes", "2", "--out-dir", str(out_dir),
          "--quiet", "--only", "direct", "long"],
         capture_output=True, text=True, env=tool_env(),
     )  # fmt: skip
     assert study.returncode == 0, study.stdout + study.stderr
-    assert "(1000 steps) from its state at step 1000" in study.stdout
-    assert study.stdout.count("resuming training from step 1000 ") == 1  # long, from short's state, not from 0
+    assert "(200 steps) from its state at step 200" in study.stdout
+    assert study.stdout.count("resuming training from step 200 ") == 1  # long, from short's state, not from 0
 
     def points(name: str) -> list[dict]:
         return [json.loads(line) for line in (out_dir / f"{name}-seed0.jsonl").read_text().splitlines()]
 
-    assert [p["step"] for p in points("long")] == [500, 1000, 1500]
+    assert [p["step"] for p in points("long")] == [100, 200, 300]
     assert points("long")[:2] == points("short")  # the shorter curve's points, trained once (--only trained it)
     states = {
         name: torch.load(
@@ -102,16 +102,16 @@ def test_a_longer_curve_extends_a_shorter_one_to_the_weights_of_one_trained_from
         )
         for name in ("direct", "short", "long")
     }  # kept: constant rate
-    assert [states[name]["step"] for name in ("direct", "short", "long")] == [1500, 1000, 1500]
+    assert [states[name]["step"] for name in ("direct", "short", "long")] == [300, 200, 300]
     for part in ("model", "ema"):
         direct, long = states["direct"][part], states["long"][part]
         assert direct.keys() == long.keys()
         assert all(torch.equal(direct[key], long[key]) for key in direct)  # extended == trained from step 0
     assert points("long")[2]["score_mean"] == points("direct")[2]["score_mean"]
 
-    refused = subprocess.run(  # a state of another curve (direct: 1500 steps) does not extend short's points
+    refused = subprocess.run(  # a state of another curve (direct: 300 steps) does not extend short's points
         [sys.executable, str(REPO / "benchmarks" / "learning_curve.py"), str(project), "--task", MAZE,
-         "--steps", "2000", "--every", "500", "--episodes", "2", "--set", "pretrain.lr_schedule=constant",
+         "--steps", "400", "--every", "100", "--episodes", "2", "--set", "pretrain.lr_schedule=constant",
          "--label", "other", "--out", str(tmp_path / "other.jsonl"), "--extend", str(out_dir / "short-seed0.jsonl"),
          "--extend-state", str(project / "models" / ".resume" / f"learning-curve-{MAZE}-recipe-direct-seed0.pt")],
         capture_output=True, text=True, env=tool_env(),
