@@ -1,9 +1,10 @@
 """Shared fixtures: a tiny model configuration, a real expert dataset collected in U-Maze, and the smoke project
-after one `dvc repro` (built once per test session, in each pytest-xdist worker that needs it)."""
+after one `dvc repro` (built once per test session: its tests share one pytest-xdist worker)."""
 
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -110,7 +111,33 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     )
 
 
+class GroupCheck:
+    """Fails the run when ``--dist loadgroup`` would not keep a group in one worker. pytest-xdist passes a test's
+    group to its scheduler as an ``@group`` suffix of the test's id; pytest 9.2 ignores the way xdist 3.8 sets it
+    (pytest-xdist#1386), so the groups were silently spread over the workers and each built the smoke project
+    (requirements-dev.lock pins pytest below 9.2 for this). A plugin of its own, as a conftest holds one hook
+    function of each name."""
+
+    @pytest.hookimpl(trylast=True)  # after pytest-xdist's own hook, which adds the suffix
+    def pytest_collection_modifyitems(self, config: pytest.Config, items: list[pytest.Item]) -> None:
+        if not getattr(config.option, "loadgroup", False):  # set in the xdist workers of a loadgroup run only
+            return
+        lost = [
+            item.nodeid
+            for item in items
+            if (mark := item.get_closest_marker("xdist_group")) and not item.nodeid.endswith(f"@{mark.args[0]}")
+        ]
+        if lost:
+            message = (
+                f"--dist loadgroup does not group here ({lost[0]} has no @group suffix): this pytest and pytest-xdist "
+                "spread grouped tests over workers (pytest-xdist#1386); install the pytest requirements-dev.lock pins"
+            )
+            print(f"error: {message}", file=sys.__stderr__)  # xdist reports the worker's error without its text
+            raise pytest.UsageError(message)
+
+
 def pytest_configure(config: pytest.Config) -> None:
+    config.pluginmanager.register(GroupCheck(), "group-check")
     # Tiny networks run fastest on one thread; extra intra-op threads only contend with other work on the machine:
     # the tests run in one pytest-xdist worker per core (scripts/test.sh), and the stages, `dvc` and sweep workers
     # they start inherit one thread too.

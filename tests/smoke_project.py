@@ -11,6 +11,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import yaml
+
 REPO = Path(__file__).resolve().parents[1]
 PROJECT_FILES = ["dvc.yaml", "params.yaml", "pipeline", "profiles", "src", ".dvcignore", ".gitignore"]
 
@@ -47,6 +49,22 @@ def make_smoke_project(
     run(["git", "add", "-A"], root)
     run(["git", "commit", "-qm", "smoke project"], root)
     return root
+
+
+def only_tasks(tasks: list[str], **keys: object) -> Callable[[Path], None]:
+    """A params edit for :func:`make_smoke_project`: the project runs ``tasks`` alone (as its ``tasks``,
+    ``collect_tasks`` and ``pretrain_tasks``, in the profile's order), with the top-level ``keys`` (``evolve``,
+    ``phases``, ``unseen_tasks``, ``seeds``, ...) set as given."""
+
+    def edit(path: Path) -> None:
+        raw = yaml.safe_load(path.read_text())
+        unknown = sorted(set(tasks) - set(raw["tasks"]))
+        assert not unknown, f"{unknown}: not tasks of the profile"
+        kept = [task for task in raw["tasks"] if task in tasks]
+        raw.update(tasks=kept, collect_tasks=kept, pretrain_tasks=kept, **keys)
+        path.write_text(yaml.safe_dump(raw, sort_keys=False))
+
+    return edit
 
 
 def tool_env() -> dict[str, str]:

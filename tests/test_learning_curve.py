@@ -16,22 +16,19 @@ from pathlib import Path
 
 import pytest
 import torch
-import yaml
-from smoke_project import REPO, make_smoke_project, run_tool, tool_env
+from smoke_project import REPO, make_smoke_project, only_tasks, run_tool, tool_env
 
 MAZE = "maze2d-umaze"
 
 
-def _maze_only(path: Path) -> None:
-    raw = yaml.safe_load(path.read_text())
-    raw.update(tasks=[MAZE], collect_tasks=[MAZE], pretrain_tasks=[MAZE], unseen_tasks=[MAZE], evolve=None, phases={})
-    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+#: phase 0 of the maze task alone
+MAZE_ONLY = only_tasks([MAZE], unseen_tasks=[MAZE], evolve=None, phases={})
 
 
 @pytest.mark.e2e
 def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -> None:
     (tmp_path / "project").mkdir()
-    project = make_smoke_project(tmp_path / "project", run_tool, edit=_maze_only)
+    project = make_smoke_project(tmp_path / "project", run_tool, edit=MAZE_ONLY)
     run_tool(["dvc", "repro", f"reference@{MAZE}"], project)
     recipes = tmp_path / "recipes.yaml"
     recipes.write_text("short: {steps: 3000}\n")
@@ -74,7 +71,7 @@ def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -
 @pytest.mark.e2e
 def test_a_longer_curve_extends_a_shorter_one_to_the_weights_of_one_trained_from_zero(tmp_path: Path) -> None:
     (tmp_path / "project").mkdir()
-    project = make_smoke_project(tmp_path / "project", run_tool, edit=_maze_only)
+    project = make_smoke_project(tmp_path / "project", run_tool, edit=MAZE_ONLY)
     run_tool(["dvc", "repro", f"reference@{MAZE}"], project)
     constant = "set: {pretrain.lr_schedule: constant}"
     recipes = tmp_path / "recipes.yaml"

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 import yaml
-from smoke_project import REPO, make_smoke_project, run_tool, tool_env
+from smoke_project import REPO, make_smoke_project, only_tasks, run_tool, tool_env
 
 from adaptdiffuser.stages.pool import summary_of
 from adaptdiffuser.tooling.long_run import log_path, running_record, start, status, stop
@@ -152,16 +152,8 @@ def test_a_stopped_dvc_repro_leaves_no_zombie_holding_dvcs_lock(tmp_path: Path) 
 def _phase0_of_one_task(path: Path) -> None:
     """Phase 0 of the maze task alone over two training seeds, with a pretraining long enough to be stopped between
     its checkpoints, ``EVERY`` steps apart."""
+    only_tasks([MAZE], unseen_tasks=[MAZE], evolve=None, phases={}, seeds=[0, 1])(path)
     raw = yaml.safe_load(path.read_text())
-    raw.update(
-        tasks=[MAZE],
-        collect_tasks=[MAZE],
-        pretrain_tasks=[MAZE],
-        unseen_tasks=[MAZE],
-        evolve=None,
-        phases={},
-        seeds=[0, 1],
-    )
     raw["pretrain"] |= {"steps": STEPS, "checkpoint_every": EVERY}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
 
@@ -226,15 +218,8 @@ def test_a_stopped_run_continues_on_another_machine_and_a_killed_one_where_it_is
 
 def _maze_phases_only(path: Path) -> None:
     """The smoke profile's first evolution phase on the maze task alone (with its control), in episodes of two plans."""
+    only_tasks([MAZE], unseen_tasks=[MAZE], evolve=MAZE, phases={"phase1": {"previous": 0}})(path)
     raw = yaml.safe_load(path.read_text())
-    raw.update(
-        tasks=[MAZE],
-        collect_tasks=[MAZE],
-        pretrain_tasks=[MAZE],
-        unseen_tasks=[MAZE],
-        evolve=MAZE,
-        phases={"phase1": {"previous": 0}},
-    )
     raw["task"][MAZE]["env"] = {"episode_steps": 2 * raw["diffusion"]["horizon"]}
     raw["evolution"]["generate"] |= {"replan_every": raw["diffusion"]["horizon"]}
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
@@ -293,13 +278,8 @@ def test_science_locomotion_evolves_each_task_on_one_phase0(tmp_path: Path) -> N
     1000-step evaluation episodes take most of the time, and it only ever runs phase 0): Walker2d's phases, then
     Hopper's, on the phase 0 the first run computed for every task."""
 
-    def without_halfcheetah(path: Path) -> None:
-        raw = yaml.safe_load(path.read_text())
-        for key in ("tasks", "collect_tasks", "pretrain_tasks"):
-            raw[key] = [task for task in raw[key] if task != "halfcheetah-medium"]
-        path.write_text(yaml.safe_dump(raw, sort_keys=False))
-
-    project = make_smoke_project(tmp_path, run_tool, edit=without_halfcheetah, profile="science-locomotion", tiny=True)
+    no_cheetah = only_tasks(["hopper-medium", "walker2d-medium"])
+    project = make_smoke_project(tmp_path, run_tool, edit=no_cheetah, profile="science-locomotion", tiny=True)
     (project / "scripts").mkdir()
     shutil.copy2(REPO / "scripts" / "science_locomotion.sh", project / "scripts")
     log = run_tool(["bash", "scripts/science_locomotion.sh"], project)

@@ -13,12 +13,11 @@ import json
 import runpy
 import shlex
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import yaml
-from smoke_project import REPO, make_smoke_project, run_tool
+from smoke_project import REPO, make_smoke_project, only_tasks, run_tool
 
 #: smoke is left out: tests/test_pipeline.py runs it through `dvc repro` itself, every stage a process of its own
 PROFILES = sorted(path.stem for path in (REPO / "profiles").glob("*.yaml") if path.stem != "smoke")
@@ -42,18 +41,6 @@ RUN = [name for name in PROFILES if name not in COVERED_BY]
 #: datasets, and one task per environment and per dataset recipe runs every code path of the nine (the nine alone took
 #: 27 min of the suite's 69 on the 2-core AVX2-only EPYC)
 NARROWED = {"paper-locomotion": ["hopper-medium", "walker2d-medium-replay", "halfcheetah-medium-expert"]}
-
-
-def narrow_to(tasks: list[str]) -> Callable[[Path], None]:
-    """A params edit that runs ``tasks`` alone (the first one is the evolved task)."""
-
-    def edit(path: Path) -> None:
-        raw = yaml.safe_load(path.read_text())
-        assert set(tasks) <= set(raw["tasks"]) and raw["evolve"] == tasks[0]
-        raw.update(tasks=tasks, collect_tasks=tasks, pretrain_tasks=tasks)
-        path.write_text(yaml.safe_dump(raw, sort_keys=False))
-
-    return edit
 
 
 #: the profile that the committed params.yaml holds, whose run wrote the committed metrics/summary.json
@@ -125,7 +112,7 @@ def test_a_profile_left_out_of_the_tiny_runs_repeats_the_families_and_stages_of_
 def test_every_profile_runs_end_to_end_at_tiny_scale(
     profile: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    edit = narrow_to(NARROWED[profile]) if profile in NARROWED else None
+    edit = only_tasks(NARROWED[profile]) if profile in NARROWED else None
     root = make_smoke_project(tmp_path, run_tool, edit=edit, profile=profile, tiny=True)
     params = yaml.safe_load((root / "params.yaml").read_text())
     commands = planned_commands(root)
