@@ -31,10 +31,10 @@ def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -
     project = make_smoke_project(tmp_path / "project", run_tool, edit=MAZE_ONLY)
     run_tool(["dvc", "repro", f"reference@{MAZE}"], project)
     recipes = tmp_path / "recipes.yaml"
-    recipes.write_text("short: {steps: 3000}\n")
+    recipes.write_text("short: {steps: 1200}\n")
     out_dir = tmp_path / "curves"
     study = [sys.executable, str(REPO / "benchmarks" / "recipe_study.py"), str(project), "--task", MAZE,
-             "--recipes", str(recipes), "--training-seeds", "0", "--every", "1000", "--episodes", "2",
+             "--recipes", str(recipes), "--training-seeds", "0", "--every", "400", "--episodes", "2",
              "--out-dir", str(out_dir), "--quiet"]  # fmt: skip
     curve = out_dir / "short-seed0.jsonl"
     resume = project / "models" / ".resume" / f"learning-curve-{MAZE}-recipe-short-seed0.pt"
@@ -43,7 +43,7 @@ def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -
     with open(log, "w") as sink:  # its own process group, stopped as `adaptdiffuser run stop` stops one: SIGTERM to it
         first = subprocess.Popen(study, stdout=sink, stderr=subprocess.STDOUT, env=tool_env(), start_new_session=True)
         deadline = time.monotonic() + 600
-        while _state_step(resume) != 1000:  # the first point and its state are written: the stop comes after them
+        while _state_step(resume) != 400:  # the first point and its state are written: the stop comes after them
             assert first.poll() is None and time.monotonic() < deadline, log.read_text()
             time.sleep(0.05)
         time.sleep(1.0)  # some steps towards the next point
@@ -53,7 +53,7 @@ def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -
     stops = re.findall(r"SIGTERM: stopping after step (\d+),", log.read_text())
     assert len(stops) == 1, log.read_text()  # the curve took the stop once, ended its step and wrote its state
     stopped = int(stops[0])
-    assert 1000 < stopped < 3000
+    assert 400 < stopped < 1200
     assert _state_step(resume) == stopped
     kept = json.loads(clock.read_text())
     point = json.loads(curve.read_text())
@@ -63,7 +63,7 @@ def test_a_stopped_curve_continues_from_the_step_it_stopped_at(tmp_path: Path) -
     assert again.returncode == 0, again.stdout + again.stderr
     assert f"resuming training from step {stopped} " in again.stdout + again.stderr
     points = [json.loads(line) for line in curve.read_text().splitlines()]
-    assert [p["step"] for p in points] == [1000, 2000, 3000]
+    assert [p["step"] for p in points] == [400, 800, 1200]
     assert points[1]["train_cpu_s"] > kept["train_cpu_s"]  # the clock went on from the stop, not from the point
     assert not resume.exists() and not clock.exists()
 
