@@ -111,6 +111,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     )
 
 
+def _group_suffix(item: pytest.Item) -> str:
+    """The suffix pytest-xdist gives the id of an item marked ``xdist_group`` (its groups' names, sorted, joined by
+    ``_``); empty for an item with no group."""
+    names = sorted({mark.args[0] if mark.args else mark.kwargs.get("name", "default") for mark in
+                    item.iter_markers("xdist_group")})  # fmt: skip
+    return f"@{'_'.join(names)}" if names else ""
+
+
 class GroupCheck:
     """Fails the run when ``--dist loadgroup`` would not keep a group in one worker. pytest-xdist passes a test's
     group to its scheduler as an ``@group`` suffix of the test's id; pytest 9.2 ignores the way xdist 3.8 sets it
@@ -122,11 +130,7 @@ class GroupCheck:
     def pytest_collection_modifyitems(self, config: pytest.Config, items: list[pytest.Item]) -> None:
         if not getattr(config.option, "loadgroup", False):  # set in the xdist workers of a loadgroup run only
             return
-        lost = [
-            item.nodeid
-            for item in items
-            if (mark := item.get_closest_marker("xdist_group")) and not item.nodeid.endswith(f"@{mark.args[0]}")
-        ]
+        lost = [item.nodeid for item in items if (group := _group_suffix(item)) and not item.nodeid.endswith(group)]
         if lost:
             message = (
                 f"--dist loadgroup does not group here ({lost[0]} has no @group suffix): this pytest and pytest-xdist "
