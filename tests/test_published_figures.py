@@ -284,7 +284,7 @@ def test_a_changed_number_in_any_cell_fails(doc: str) -> None:
 def test_other_tampering_fails() -> None:
     text = (REPO / "README.md").read_text()
     heading = SECTIONS["README.md"]
-    row = next(line for line in text.splitlines() if line.startswith("| `plans`, seeds 0, 2 | held out"))
+    row = next(line for line in text.splitlines() if line.startswith("| `plans`, seeds 0, 1, 2 | held out"))
 
     def fails(old: str, new: str, count: int = 1) -> None:
         assert text.count(old) >= 1, old
@@ -293,7 +293,7 @@ def test_other_tampering_fails() -> None:
     fails(row + "\n", "")  # a row dropped
     fails("| 0.43 |", "| 0.43 (0.12) |")  # a number no JSON has, added
     fails("| 0.43 |", "| 0.4 |")  # the right number, rounded otherwise than printed
-    fails("| 2 seeds (Student t) |", "| one seed: over episodes |")  # an interval over seeds labelled as one seed's
+    fails("| 3 seeds (Student t) |", "| one seed: over episodes |")  # an interval over seeds labelled as one seed's
     fails("-3.5 [-10.8, 3.9]", "**-3.5 [-10.8, 3.9]**")  # bold that claims zero is excluded
     fails("-3.5 [-10.8, 3.9] on its own", "-3.5 [-7.2, -0.1] on its own")  # the superseded interval, in the prose
     fails("rollouts=metrics/science/maze2d-large-retest/rollouts.json", "")  # the JSON not named
