@@ -51,18 +51,25 @@ def make_smoke_project(
     return root
 
 
+def narrow(raw: dict, tasks: list[str], **keys: object) -> dict:
+    """Params ``raw`` (a profile's) running ``tasks`` alone, in the order given (as its ``tasks``, ``collect_tasks``
+    and ``pretrain_tasks``), then the top-level ``keys`` (``evolve``, ``phases``, ``unseen_tasks``, ``seeds``, ...)
+    set as given: a key named there (``pretrain_tasks=[]``) wins."""
+    unknown = sorted(set(tasks) - set(raw["task"]))
+    assert not unknown, f"{unknown}: the profile has no settings for them"
+    return {**raw, "tasks": list(tasks), "collect_tasks": list(tasks), "pretrain_tasks": list(tasks), **keys}
+
+
 def only_tasks(tasks: list[str], **keys: object) -> Callable[[Path], None]:
-    """A params edit for :func:`make_smoke_project`: the project runs ``tasks`` alone (as its ``tasks``,
-    ``collect_tasks`` and ``pretrain_tasks``, in the profile's order), with the top-level ``keys`` (``evolve``,
-    ``phases``, ``unseen_tasks``, ``seeds``, ...) set as given."""
+    """A params edit for :func:`make_smoke_project`: the project runs ``tasks`` alone, in the profile's order (its
+    pipeline lists only the profile's tasks), as :func:`narrow` sets them."""
 
     def edit(path: Path) -> None:
         raw = yaml.safe_load(path.read_text())
         unknown = sorted(set(tasks) - set(raw["tasks"]))
         assert not unknown, f"{unknown}: not tasks of the profile"
         kept = [task for task in raw["tasks"] if task in tasks]
-        raw.update(tasks=kept, collect_tasks=kept, pretrain_tasks=kept, **keys)
-        path.write_text(yaml.safe_dump(raw, sort_keys=False))
+        path.write_text(yaml.safe_dump(narrow(raw, kept, **keys), sort_keys=False))
 
     return edit
 

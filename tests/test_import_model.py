@@ -14,6 +14,7 @@ import pytest
 import torch
 import yaml
 from deps_trace import check_stage, dvc_stages, load_traces, traced_env
+from smoke_project import narrow
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
@@ -33,8 +34,8 @@ SEEDS = [0, 1]
 def maze_params(root: Path, pretrained: str | None = None, **changes: object) -> Params:
     """The smoke profile on the maze task alone, two training seeds; its phase 0 from ``pretrained`` when given."""
     raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", root / "params.yaml").read_text())
-    raw.update(tasks=[TASK], collect_tasks=[TASK], unseen_tasks=[TASK], evolve=TASK, seeds=SEEDS)
-    raw.update(pretrained={TASK: pretrained} if pretrained else {}, pretrain_tasks=[] if pretrained else [TASK])
+    imported = {"pretrained": {TASK: pretrained}, "pretrain_tasks": []} if pretrained else {}
+    raw = narrow(raw, [TASK], unseen_tasks=[TASK], evolve=TASK, seeds=SEEDS, **imported)
     for key, value in changes.items():  # dotted keys: model.dim=...
         *path, last = key.split(".")
         node = raw

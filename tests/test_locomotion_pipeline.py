@@ -14,6 +14,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 import yaml
+from smoke_project import narrow
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
@@ -50,8 +51,7 @@ PROFILES = Path(__file__).resolve().parents[1] / "profiles"
 def smoke_params(name: str, tmp_path: Path) -> Params:
     """The smoke profile's entry for ``name``, run as the only task (the DVC smoke pipeline does not list it)."""
     raw = yaml.safe_load(apply_profile("smoke", PROFILES, tmp_path / "params.yaml").read_text())
-    raw.update(tasks=[name], collect_tasks=[name], pretrain_tasks=[name], unseen_tasks=[], evolve=None, phases={})
-    return params_from_dict(raw)
+    return params_from_dict(narrow(raw, [name], unseen_tasks=[], evolve=None, phases={}))
 
 
 @pytest.fixture(autouse=True)
@@ -109,8 +109,7 @@ def test_locomotion_evolution_phase(tmp_path: Path, capsys: pytest.CaptureFixtur
     reruns a stage killed on a later seed, its outputs deleted) trains neither the model nor the value again."""
     name = "hopper-medium"
     raw = yaml.safe_load(apply_profile("smoke", PROFILES, tmp_path / "params.yaml").read_text())
-    raw.update(tasks=[name], collect_tasks=[name], pretrain_tasks=[name], unseen_tasks=[], evolve=name)
-    params = params_from_dict(raw)
+    params = params_from_dict(narrow(raw, [name], unseen_tasks=[], evolve=name))
     device = torch.device("cpu")
     run_collect(params, name, tmp_path, progress=False)
     pretrain_seed(params, name, tmp_path, device, 0, progress=False)

@@ -22,6 +22,7 @@ import pytest
 import torch
 import yaml
 from mlflow.tracking import MlflowClient
+from smoke_project import narrow
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import apply_profile, params_from_dict
@@ -94,11 +95,7 @@ def test_stages_log_to_a_tracking_server(server: str, tmp_path: Path, monkeypatc
     for name in ("DVC_EXP_NAME", "DVC_ROOT", PIPELINE_RUN_ENV, PARENT_RUN_ENV):
         monkeypatch.delenv(name, raising=False)
     raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", tmp_path / "params.yaml").read_text())
-    raw.update(tasks=[TASK], unseen_tasks=[TASK], evolve=TASK)
-    for key in ("collect_tasks", "pretrain_tasks"):
-        if key in raw:
-            raw[key] = [TASK]
-    params = params_from_dict(raw)
+    params = params_from_dict(narrow(raw, [TASK], unseen_tasks=[TASK], evolve=TASK))
     try:
         run_collect(params, TASK, tmp_path, progress=False)
         run_pretrain(params, TASK, tmp_path, torch.device("cpu"), progress=False)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from smoke_project import REPO, make_smoke_project, run_queue, run_tool
+from smoke_project import REPO, make_smoke_project, only_tasks, run_queue, run_tool
 
 from adaptdiffuser.errors import StageError
 from adaptdiffuser.seed_metrics import over_seeds
@@ -195,13 +195,7 @@ def test_a_seed_in_two_runs_files_is_refused(tasks: Path, tmp_path: Path) -> Non
 
 @pytest.mark.e2e
 def test_seeds_queued_as_dvc_experiments_run_on_two_workers_and_pool(tmp_path: Path) -> None:
-    def phase0_of_the_maze(path: Path) -> None:
-        raw = yaml.safe_load(path.read_text())
-        raw.update(
-            tasks=[TASK], collect_tasks=[TASK], pretrain_tasks=[TASK], unseen_tasks=[TASK], evolve=None, phases={}
-        )
-        path.write_text(yaml.safe_dump(raw, sort_keys=False))
-
+    phase0_of_the_maze = only_tasks([TASK], unseen_tasks=[TASK], evolve=None, phases={})
     (tmp_path / "project").mkdir()
     project = make_smoke_project(tmp_path / "project", run_tool, edit=phase0_of_the_maze)
     out = run_tool(["adaptdiffuser", "seeds", "queue", "0", "1", "--name", "tiny"], project)

@@ -13,6 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 import torch
 import yaml
+from smoke_project import narrow
 
 from adaptdiffuser.checkpoint import load_bundle
 from adaptdiffuser.config import Params, apply_profile, params_from_dict
@@ -59,9 +60,8 @@ TASK = "maze2d-umaze"
 
 def _params(root: Path, seeds: list[int]) -> Params:
     raw = yaml.safe_load(apply_profile("smoke", REPO / "profiles", root / "params.yaml").read_text())
-    raw.update(tasks=[TASK], collect_tasks=[TASK], pretrain_tasks=[TASK], unseen_tasks=[TASK], evolve=TASK, seeds=seeds)
-    raw["phases"] = {"phase1": {"previous": 0}}
-    return params_from_dict(raw)
+    phases = {"phase1": {"previous": 0}}
+    return params_from_dict(narrow(raw, [TASK], unseen_tasks=[TASK], evolve=TASK, seeds=seeds, phases=phases))
 
 
 @pytest.fixture(scope="module")
