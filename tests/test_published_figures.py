@@ -6,6 +6,9 @@ key) and, for a "committed" column, ``committed-rollouts=`` / ``committed-plans=
 column's meaning comes from its header; every number in a cell must be the one its JSON gives, rounded as printed (1
 decimal for scores and gains, 2 for win rates, integers for seeds), in order, and nothing else. Every ``x [a, b]`` in
 the prose of the same section must be one of those JSONs' intervals. The checker is tested on tampered copies too.
+
+A table whose line above is ``<!-- summary: PATH per-seed=FOLDER -->`` is a pipeline record's (a science summary, one
+task, and its per-seed task metrics): one row per phase and set of start states, checked the same way.
 """
 
 from __future__ import annotations
@@ -321,3 +324,126 @@ def test_the_checker_reads_a_minimal_table() -> None:
     text = "\n".join(lines) + "\n\nGain +7.8 [4.3, 11.3] on its own states.\n"
     assert check(text, "## Re-test") == []
     assert check(text.replace("+7.8 [4.3, 11.3] on", "+7.8 [4.3, 11.4] on"), "## Re-test")
+
+
+# -- pipeline records (science summaries) ------------------------------------------------------------------------------
+
+SUMMARY_MARKER = re.compile(r"<!--\s*summary:\s*(?P<path>\S+)\s+per-seed=(?P<per_seed>\S+)\s*-->")
+
+#: header substring -> column kind of a pipeline record's table, first match wins
+SUMMARY_KINDS = (
+    ("per-seed", "per_seed"),
+    ("start states", "states"),
+    ("gain", "gain"),
+    ("control", "control"),
+    ("win rate", "win_rate"),
+    ("success", "success"),
+    ("score", "score"),
+    ("phase", "phase"),
+)
+
+
+def triple(block: dict, name: str) -> Expected:
+    return [(block[f"{name}_mean"], 1), (block[f"{name}_ci_low"], 1), (block[f"{name}_ci_high"], 1)]
+
+
+def summary_cell(kind: str, cell: str, record: dict, per_seed: Path, phase: int, held_out: bool) -> Expected:
+    assert f"phase_{phase}" in record, f"the record has no phase {phase}"
+    entry = record[f"phase_{phase}"]
+    block = entry["held_out"] if held_out else entry
+    if kind == "phase":
+        return [(phase, 0)]
+    if kind == "states":
+        return []
+    if kind == "score":
+        return triple(block, "score")
+    if kind == "success":
+        return [(block["success_rate"], 2)]
+    if phase == 0:  # no control, gain or win rate
+        return []
+    control = entry["control"]["held_out"] if held_out else entry["control"]
+    if kind == "control":
+        return [*triple(control, "score"), (control["success_rate"], 2)]
+    if kind == "gain":
+        excludes_zero = block["gain_ci_low"] > 0 or block["gain_ci_high"] < 0
+        assert ("**" in cell) == excludes_zero, f"bold exactly when the interval excludes zero: {cell!r}"
+        return triple(block, "gain")
+    if kind == "win_rate":
+        return [(block["win_rate"], 2)]
+    if kind == "per_seed":
+        seeds = json.loads((per_seed / f"phase{phase}-control.json").read_text())["seeds"]
+        return [((seeds[s]["held_out"] if held_out else seeds[s])["gain_mean"], 1) for s in sorted(seeds, key=int)]
+    raise AssertionError(kind)
+
+
+def table_below(lines: list[str], i: int) -> list[str]:
+    """The table rows right below line ``i``."""
+    body = []
+    for row in lines[i + 1 :]:
+        if not row.startswith("|"):
+            break
+        body.append(row)
+    return body
+
+
+def check_summary_tables(text: str) -> list[str]:
+    """Every problem with the tables of ``text`` marked ``<!-- summary: ... -->``."""
+    lines, errors = text.splitlines(), []
+    for i, line in enumerate(lines):
+        m = SUMMARY_MARKER.fullmatch(line.strip())
+        if not m:
+            continue
+        (task, record), *more = json.loads((REPO / m["path"]).read_text()).items()
+        assert not more, f"line {i + 1}: {m['path']} holds more than one task"
+        body = table_below(lines, i)
+        header = cells(body[0])
+        kinds = [next(kind for key, kind in SUMMARY_KINDS if key in h.lower()) for h in header]
+        seen = []
+        for r, row in enumerate(cells(b) for b in body[2:]):
+            where = f"table at line {i + 1}, row {r + 1}"
+            states = row[kinds.index("states")]
+            phase, held_out = int(NUMBER.findall(row[kinds.index("phase")])[0]), "held out" in states
+            if ("own" in states) == held_out:
+                errors.append(f"{where}: cannot tell its start states (own / held out)")
+                continue
+            seen.append((phase, held_out))
+            for kind, head, cell in zip(kinds, header, row, strict=True):
+                try:
+                    want = summary_cell(kind, cell, record, REPO / m["per_seed"], phase, held_out)
+                except AssertionError as e:
+                    errors.append(f"{where}, {head!r}: {e}")
+                    continue
+                got = printed(cell)
+                if len(got) != len(want) or any(
+                    d != dw or v != rounded(w, dw) for (v, d), (w, dw) in zip(got, want, strict=True)
+                ):
+                    shown = ", ".join(f"{w:.{d}f}" for w, d in want)
+                    errors.append(f"{where}, {head!r}: {cell!r} is not [{shown}] ({m['path']}, {task})")
+        phases = sorted(int(k.split("_")[1]) for k in record if k.startswith("phase_"))
+        if sorted(seen) != [(ph, h) for ph in phases for h in (False, True)]:
+            errors.append(f"table at line {i + 1}: rows {seen}, want each phase of {phases} on both sets once")
+    return errors
+
+
+def test_every_pipeline_record_figure_is_its_committed_summary() -> None:
+    text = (REPO / "docs/results.md").read_text()
+    assert SUMMARY_MARKER.search(text), "docs/results.md: no table marked <!-- summary: ... -->"
+    assert check_summary_tables(text) == []
+
+
+def test_a_changed_number_or_row_in_a_pipeline_record_table_fails() -> None:
+    text = (REPO / "docs/results.md").read_text()
+    lines = text.splitlines(keepends=True)
+    marker = next(i for i, line in enumerate(lines) if SUMMARY_MARKER.fullmatch(line.strip()))
+    rows = table_below([line.rstrip("\n") for line in lines], marker)[2:]
+    offset = sum(len(line) for line in lines[: marker + 3])  # the first body row's start
+    body = "".join(lines[marker + 3 : marker + 3 + len(rows)])
+    numbers = list(NUMBER.finditer(body))
+    assert len(numbers) >= 30
+    for m in numbers:
+        last = offset + m.end() - 1
+        tampered = text[:last] + str((int(text[last]) + 1) % 10) + text[last + 1 :]
+        assert check_summary_tables(tampered), f"changing {m[0]!r} went unnoticed"
+    assert check_summary_tables(text.replace(rows[-1] + "\n", "", 1)), "a dropped row went unnoticed"
+    bold = next(row for row in rows if "**" in row)
+    assert check_summary_tables(text.replace(bold, bold.replace("**", ""), 1)), "bold lost, unnoticed"
