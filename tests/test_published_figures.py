@@ -77,6 +77,16 @@ def section(text: str, heading: str) -> str:
     return text[start : start + len(heading) + nxt.start()] if nxt else text[start:]
 
 
+def table_below(lines: list[str], i: int) -> list[str]:
+    """The table rows right below line ``i``."""
+    body = []
+    for row in lines[i + 1 :]:
+        if not row.startswith("|"):
+            break
+        body.append(row)
+    return body
+
+
 def marked_tables(text: str, first_line: int = 1) -> list[Table]:
     lines = text.splitlines()
     tables = []
@@ -85,11 +95,7 @@ def marked_tables(text: str, first_line: int = 1) -> list[Table]:
         if not m:
             continue
         sources = dict(token.split("=", 1) for token in m["sources"].split())
-        body = []
-        for row in lines[i + 1 :]:
-            if not row.startswith("|"):
-                break
-            body.append(row)
+        body = table_below(lines, i)
         assert len(body) >= 3, f"line {i + 1}: a figures marker must sit right above a table"
         assert set(body[1]) <= set("|-: "), f"line {i + 2}: no separator row under the header"
         tables.append(Table(sources, cells(body[0]), [cells(r) for r in body[2:]], first_line + i))
@@ -111,6 +117,14 @@ def rounded(value: float, decimals: int) -> float:
 
 def printed(cell: str) -> list[tuple[float, int]]:
     return [(float(t), len(t.split(".")[1]) if "." in t else 0) for t in NUMBER.findall(cell)]
+
+
+def shows(cell: str, want: Expected) -> bool:
+    """Whether ``cell`` prints exactly the numbers ``want``, in order, each rounded as printed."""
+    got = printed(cell)
+    return len(got) == len(want) and all(
+        d == dw and v == rounded(w, dw) for (v, d), (w, dw) in zip(got, want, strict=True)
+    )
 
 
 def interval(block: dict, what: str) -> Expected:
@@ -196,11 +210,7 @@ def check_table(table: Table) -> list[str]:
             except AssertionError as e:
                 errors.append(f"{where}, {header!r}: {e}")
                 continue
-            got = printed(cell)
-            ok = len(got) == len(want) and all(
-                d == dw and v == rounded(w, dw) for (v, d), (w, dw) in zip(got, want, strict=True)
-            )
-            if not ok:
+            if not shows(cell, want):
                 shown = ", ".join(f"{w:.{d}f}" for w, d in want)
                 source = table.sources[f"committed-{recipe}" if kind == "committed" else recipe]
                 errors.append(f"{where}, {header!r}: {cell!r} is not [{shown}] ({source})")
@@ -376,16 +386,6 @@ def summary_cell(kind: str, cell: str, record: dict, per_seed: Path, phase: int,
     raise AssertionError(kind)
 
 
-def table_below(lines: list[str], i: int) -> list[str]:
-    """The table rows right below line ``i``."""
-    body = []
-    for row in lines[i + 1 :]:
-        if not row.startswith("|"):
-            break
-        body.append(row)
-    return body
-
-
 def check_summary_tables(text: str) -> list[str]:
     """Every problem with the tables of ``text`` marked ``<!-- summary: ... -->``."""
     lines, errors = text.splitlines(), []
@@ -413,10 +413,7 @@ def check_summary_tables(text: str) -> list[str]:
                 except AssertionError as e:
                     errors.append(f"{where}, {head!r}: {e}")
                     continue
-                got = printed(cell)
-                if len(got) != len(want) or any(
-                    d != dw or v != rounded(w, dw) for (v, d), (w, dw) in zip(got, want, strict=True)
-                ):
+                if not shows(cell, want):
                     shown = ", ".join(f"{w:.{d}f}" for w, d in want)
                     errors.append(f"{where}, {head!r}: {cell!r} is not [{shown}] ({m['path']}, {task})")
         phases = sorted(int(k.split("_")[1]) for k in record if k.startswith("phase_"))
