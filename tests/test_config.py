@@ -123,6 +123,7 @@ def test_profile_list() -> None:
         "science-walker2d-w32",
         "science-halfcheetah",
         "science-umaze",
+        "science-umaze-compute",
         *PAPER,
     }
 
