@@ -38,11 +38,12 @@ for n in "$@"; do
   echo "== $(date -u +%FT%TZ) $task: $key=$n"
   rm -rf "$record"
   dvc repro
-  # the record, its summary last (what marks the length done)
-  mkdir -p "$record.tmp"
+  # the record, whole or absent: built beside it, then renamed into place
+  rm -rf "$record.tmp" && mkdir "$record.tmp"
   for ran in $tasks; do cp -r "metrics/tasks/$ran" "$record.tmp/"; done
   cp params.yaml "$record.tmp/params.yaml"
-  cp metrics/summary.json "$record.tmp/summary.json.tmp" && mv "$record.tmp/summary.json.tmp" "$record.tmp/summary.json"
-  rm -rf "$record" && mv "$record.tmp" "$record"
+  cp metrics/summary.json "$record.tmp/summary.json"
+  mv "$record.tmp" "$record"
+  python scripts/compute_curve.py "$study" --key "$key"   # the curve so far: commit it with the record
 done
 python scripts/compute_curve.py "$study" --key "$key"
