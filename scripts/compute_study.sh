@@ -46,4 +46,3 @@ for n in "$@"; do
   mv "$record.tmp" "$record"
   python scripts/compute_curve.py "$study" --key "$key"   # the curve so far: commit it with the record
 done
-python scripts/compute_curve.py "$study" --key "$key"
