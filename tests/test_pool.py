@@ -111,6 +111,25 @@ def test_a_phase_one_run_lacks_is_left_out_and_the_set_has_no_summary(tasks: Pat
     assert (tmp_path / "pooled" / "metrics" / "science" / f"{PASS}.json").exists()  # the complete set has its own
 
 
+def test_runs_whose_phase_0_was_imported_or_trained_pool_and_say_which(tasks: Path, tmp_path: Path) -> None:
+    imported, trained = one_seed_run(tmp_path / "a", 0, tasks), one_seed_run(tmp_path / "b", 1, tasks)
+    raw = yaml.safe_load((imported / "params.yaml").read_text())
+    raw |= {"pretrained": {TASK: "../phase0/maze2d-umaze"}, "pretrain_tasks": []}
+    (imported / "params.yaml").write_text(yaml.safe_dump(raw))
+    lines = pool_runs([imported, trained], tmp_path / "pooled")
+    assert any("seeds [0, 1] pooled, summary" in line for line in lines)
+    assert any("phases 0 came from different sources" in line for line in lines)
+    records = json.loads((tmp_path / "pooled" / "run.json").read_text())["pooled"]
+    sources = [record["phase0_source"] for record in records]
+    assert sources[0] == {"pretrained": {TASK: "../phase0/maze2d-umaze"}, "pretrain_tasks": []}
+    assert sources[1] == {"pretrained": None, "pretrain_tasks": None}  # the profile's: every task trained here
+
+    raw["pretrain"]["steps"] += 1  # phase 0 by another recipe: refused, wherever it came from
+    (imported / "params.yaml").write_text(yaml.safe_dump(raw))
+    with pytest.raises(StageError, match="differ in 'pretrain.steps'"):
+        pool_runs([imported, trained], tmp_path / "pooled")
+
+
 @pytest.mark.parametrize("change", ["params", "seeds", "code", "reference"])
 def test_runs_that_differ_in_more_than_their_seeds_do_not_pool(change: str, tasks: Path, tmp_path: Path) -> None:
     first, second = one_seed_run(tmp_path / "a", 0, tasks), one_seed_run(tmp_path / "b", 1, tasks)

@@ -500,9 +500,9 @@ def pool(
         list[str] | None, typer.Option("--exp", help="a DVC experiment of this repository (repeat it), e.g. NAME-seed1")
     ] = None,
 ) -> None:
-    """Pool runs of one profile that differ only in their training seeds (folders, or the DVC experiments
-    `adaptdiffuser seeds queue` queued) into the metrics and summaries one run over all their seeds writes; then
-    `adaptdiffuser gains INTO/metrics/summary.json` tables them."""
+    """Pool runs of one profile that differ only in their training seeds and phase-0 source (folders, or the DVC
+    experiments `adaptdiffuser seeds queue` queued) into the metrics and summaries one run over all their seeds
+    writes; then `adaptdiffuser gains INTO/metrics/summary.json` tables them."""
     from adaptdiffuser.stages.pool import pool_runs
 
     for line in _guarded(lambda: pool_runs(runs or [], into, experiments=exp or [])):

@@ -8,6 +8,10 @@ generation and evaluation depend on that seed alone (``derived_seeds.training_se
 holds each seed's metrics beside their aggregate (``seed_metrics.over_seeds``), so the pooled files are the ones
 the multi-seed run writes. Each set of task metrics a run holds is pooled: ``metrics/tasks/`` (its last pass) and every
 per-pass copy under ``metrics/science/<name>/`` (``scripts/science_maze.sh``: one a recipe), each with its summary.
+
+Where each run's phase 0 came from (``pretrained``: imported from a folder; ``pretrain_tasks``: trained in the run)
+is provenance, not a setting: runs that pool may differ there, as long as every other setting, the pretraining
+recipe (``pretrain``) included, is the same. The pooled ``run.json`` names each run's source.
 """
 
 from __future__ import annotations
@@ -31,6 +35,8 @@ from adaptdiffuser.stages.summarize import build_summary
 from adaptdiffuser.tooling.dvc_experiments import export_experiment
 
 TASKS_SET = "tasks"  # metrics/tasks/: the run's own (its last pass)
+#: params that say where a run's phase 0 came from (imported or trained here), not how it was trained
+PHASE0_SOURCE = ("pretrained", "pretrain_tasks")
 
 
 @dataclass(frozen=True)
@@ -75,15 +81,26 @@ def _first_difference(a: Any, b: Any, key: str = "") -> str | None:
     return None if a == b else key
 
 
+def _settings(raw: dict[str, Any]) -> dict[str, Any]:
+    """A run's params less what pooled runs may differ in: its seeds and its phase 0's source."""
+    return {**{key: value for key, value in raw.items() if key not in PHASE0_SOURCE}, "seeds": None}
+
+
+def phase0_source(raw: dict[str, Any]) -> dict[str, Any]:
+    """Where a run's phase 0 came from: its ``pretrained`` folders and its ``pretrain_tasks``, as its params say."""
+    return {key: raw.get(key) for key in PHASE0_SOURCE}
+
+
 def check_poolable(runs: list[SavedRun]) -> None:
-    """Runs pool only when their params differ in ``seeds`` alone, no seed is in two of them and their tasks ran
-    the same code (where their ``dvc.lock`` says); a one-line error naming the first that does not hold."""
+    """Runs pool only when their params differ in ``seeds`` and the source of phase 0 alone, no seed is in two of
+    them and their tasks ran the same code (where their ``dvc.lock`` says); a one-line error naming the first that
+    does not hold."""
     if len(runs) < 2:
         raise StageError("pooling needs two runs or more")
     first = runs[0]
     owner = {seed: first.label for seed in first.seeds}
     for run in runs[1:]:
-        key = _first_difference({**first.raw, "seeds": None}, {**run.raw, "seeds": None})
+        key = _first_difference(_settings(first.raw), _settings(run.raw))
         if key is not None:
             raise StageError(f"{run.label} and {first.label} differ in {key!r}, not only in seeds: they do not pool")
         for path in sorted(set(first.code) & set(run.code)):
@@ -175,10 +192,10 @@ def pool_runs(
     folders: list[Path], into: Path, repo: Path | None = None, experiments: list[str] | tuple[str, ...] = ()
 ) -> list[str]:
     """Pool the runs in ``folders`` and the DVC ``experiments`` of ``repo`` (default: the working directory) into
-    ``into`` (replaced whole, or left as it was on an error): ``params.yaml`` with every seed, each set of task
-    metrics all runs hold with its summary (``metrics/summary.json`` for ``metrics/tasks/``,
-    ``metrics/science/<name>.json`` for a pass), and ``run.json`` naming the runs. Returns one line per set pooled
-    and per file left out."""
+    ``into`` (replaced whole, or left as it was on an error): ``params.yaml`` with every seed (and the first run's
+    phase-0 source), each set of task metrics all runs hold with its summary (``metrics/summary.json`` for
+    ``metrics/tasks/``, ``metrics/science/<name>.json`` for a pass), and ``run.json`` naming the runs and the source
+    of each one's phase 0. Returns one line per set pooled and per file left out."""
     repo = repo or Path.cwd()
     with tempfile.TemporaryDirectory() as scratch:
         exported = []
@@ -200,12 +217,14 @@ def _pool(folders: list[Path], into: Path, repo: Path) -> list[str]:
     names = [name for name in sets[0] if all(name in s for s in sets)]
     if not names:
         raise StageError("the runs hold no set of task metrics in common (metrics/tasks/, metrics/science/<name>/)")
-    records = [_run_record(run.folder) for run in runs]
+    records = [_run_record(run.folder) | {"phase0_source": phase0_source(run.raw)} for run in runs]
     commits = [record.get("commit") for record in records]
     cpus = sorted({record["cpu"] for record in records if "cpu" in record})
     lines = (
         [f"the seeds ran on {len(cpus)} CPUs: {'; '.join(cpus)} (say so beside the results)"] if len(cpus) > 1 else []
     )
+    if any(record["phase0_source"] != records[0]["phase0_source"] for record in records):
+        lines.append("the runs' phases 0 came from different sources (imported or trained): run.json names each run's")
     with atomic_dir(into) as build:
         (build / "params.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
         write_json(build / "run.json", {"pooled": records, "seeds": seeds})
@@ -227,5 +246,5 @@ def _run_record(folder: Path) -> dict[str, Any]:
     record = json.loads((folder / "run.json").read_text()) if (folder / "run.json").exists() else {}
     if "experiment" in record:  # exported into a scratch folder: named by the experiment and its commit alone
         return {key: record[key] for key in ("experiment", "experiment_commit", "commit")}
-    kept = ("commit", "profile", "settings", "cpu")
+    kept = ("commit", "profile", "settings", "phase0", "cpu")
     return {"folder": str(folder), **{key: record[key] for key in kept if key in record}}

@@ -260,9 +260,9 @@ def _read_valid(folder: Path) -> tuple[dict[str, Any], list[Any]]:
     if record.get("parent_run_id") is None and not isinstance(record.get("pipeline"), dict):
         raise RecordError("record.json: neither a parent run id nor a pipeline")
     modules = []
-    for model in record["models"]:
+    if record["models"]:
         import torch
-
+    for model in record["models"]:
         try:
             modules.append(torch.load(folder / model["folder"] / "model.pt", map_location="cpu", weights_only=False))
         except Exception as err:  # noqa: BLE001 - unpickling runs arbitrary code: any error is the record's
