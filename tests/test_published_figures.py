@@ -5,7 +5,9 @@ A table whose line above is ``<!-- figures: KEY=PATH ... -->`` is checked cell b
 key) and, for a "committed" column, ``committed-rollouts=`` / ``committed-plans=`` (the science runs' summaries). Each
 column's meaning comes from its header; every number in a cell must be the one its JSON gives, rounded as printed (1
 decimal for scores and gains, 2 for win rates, integers for seeds), in order, and nothing else. Every ``x [a, b]`` in
-the prose of the same section must be one of those JSONs' intervals. The checker is tested on tampered copies too.
+the prose of the same section must be one of those JSONs' intervals, or one of a pipeline record's that the marker
+names as ``record-<name>=PATH`` (a science summary: its phases' scores, controls and gains, own and held out). The
+checker is tested on tampered copies too.
 
 A table whose line above is ``<!-- summary: PATH per-seed=FOLDER -->`` is a pipeline record's (a science summary, one
 task, and its per-seed task metrics): one row per phase and set of start states, checked the same way.
@@ -190,7 +192,7 @@ def check_table(table: Table) -> list[str]:
         return [f"table at line {table.line}: {e}"]
     if "states" not in kinds:
         return [f"table at line {table.line}: no start-states column"]
-    recipes = [k for k in table.sources if not k.startswith("committed-")]
+    recipes = [k for k in table.sources if not k.startswith(("committed-", "record-"))]
     seen = []
     for r, row in enumerate(table.rows):
         where = f"table at line {table.line}, row {r + 1}"
@@ -224,6 +226,16 @@ def allowed_triples(sources: dict[str, str]) -> set[tuple[float, float, float]]:
     out = set()
     for key, path in sources.items():
         if key.startswith("committed-"):
+            continue
+        if key.startswith("record-"):  # a pipeline record: one task's science summary
+            (record,) = load(path).values()
+            for phase in (v for k, v in record.items() if k.startswith("phase_")):
+                for entry in (phase, phase.get("control")):
+                    for block in (entry, (entry or {}).get("held_out")):
+                        for name in ("score", "gain"):
+                            if block and f"{name}_ci_low" in block:
+                                ends = (block[f"{name}_mean"], block[f"{name}_ci_low"], block[f"{name}_ci_high"])
+                                out.add(tuple(rounded(x, 1) for x in ends))
             continue
         data = load(path)
         for block in (data, data["held_out"]):
@@ -311,6 +323,8 @@ def test_other_tampering_fails() -> None:
     fails("-3.5 [-10.8, 3.9] on its own", "-3.5 [-7.2, -0.1] on its own")  # the superseded interval, in the prose
     fails("rollouts=metrics/science/maze2d-large-retest/rollouts.json", "")  # the JSON not named
     fails("<!-- figures:", "<!-- no figures:")  # the marker lost
+    fails("+7.9 [0.3, 15.5]", "+7.9 [0.3, 15.6]")  # a pipeline record's interval, in the prose, changed
+    fails(" record-large=metrics/science/maze2d-large.json", "")  # the record not named
     fails("| win rate |", "| win rate | note |")  # a column no rule checks
 
 
