@@ -229,13 +229,11 @@ def allowed_triples(sources: dict[str, str]) -> set[tuple[float, float, float]]:
             continue
         if key.startswith("record-"):  # a pipeline record: one task's science summary
             (record,) = load(path).values()
-            for phase in (v for k, v in record.items() if k.startswith("phase_")):
-                for entry in (phase, phase.get("control")):
-                    for block in (entry, (entry or {}).get("held_out")):
-                        for name in ("score", "gain"):
-                            if block and f"{name}_ci_low" in block:
-                                ends = (block[f"{name}_mean"], block[f"{name}_ci_low"], block[f"{name}_ci_high"])
-                                out.add(tuple(rounded(x, 1) for x in ends))
+            phases = [v for k, v in record.items() if k.startswith("phase_")]
+            entries = [e for phase in phases for e in (phase, phase.get("control")) if e]
+            blocks = [b for e in entries for b in (e, e.get("held_out")) if b]
+            for block, name in ((b, n) for b in blocks for n in ("score", "gain") if f"{n}_ci_low" in b):
+                out.add(tuple(rounded(value, 1) for value, _ in triple(block, name)))
             continue
         data = load(path)
         for block in (data, data["held_out"]):
