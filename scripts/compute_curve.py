@@ -122,12 +122,51 @@ def save_curve_figure(data: dict, path: Path) -> None:
     save_figure(fig, path)
 
 
+def _interval(block: dict, name: str) -> str:
+    """``mean [low, high]``; a gain signed, and bold where its interval excludes zero."""
+    mean, low, high = (block.get(f"{name}_{part}") for part in ("mean", "ci_low", "ci_high"))
+    sign = "+" if name == "gain" else ""
+    text = f"{mean:{sign}.1f} [{low:.1f}, {high:.1f}]" if low is not None else f"{mean:{sign}.1f}"
+    return f"**{text}**" if name == "gain" and low is not None and (low > 0 or high < 0) else text
+
+
+def markdown_table(data: dict) -> str:
+    """The curve as the Markdown table the docs print (bold: a gain whose interval excludes zero)."""
+    lines = [
+        "| pretraining steps | seeds | phase 0 [95 %] | phase 1 [95 %] | control [95 %] | gain, own [95 %] "
+        "| gain, held out [95 %] | win rate, own | kept per seed | per seed: phase 0 / gain own / held out |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for entry in data["lengths"]:
+        gain, held = entry["gain"], entry["held_out_gain"]
+        per_seed = "; ".join(
+            f"seed {seed}: {values['phase_0']:.1f} / {values['gain']:+.1f}"
+            + (f" / {values['held_out_gain']:+.1f}" if values["held_out_gain"] is not None else "")
+            for seed, values in sorted(entry["per_seed"].items(), key=lambda item: int(item[0]))
+        )
+        cells = [
+            f"{entry['steps']:,}".replace(",", " "),
+            str(entry["n_seeds"]),
+            _interval(entry["phase_0"], "score"),
+            _interval(entry["phase_1"], "score"),
+            _interval(entry["control"], "score"),
+            _interval(gain, "gain"),
+            _interval(held, "gain") if held else "",
+            f"{gain['win_rate']:.2f}" if "win_rate" in gain else "",
+            f"{entry['kept']:.1f}",
+            per_seed,
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("study", type=Path, help="metrics/science/<task>-compute: the recorded lengths")
     parser.add_argument("--key", default="pretrain.steps", help="the params key the study varied")
     parser.add_argument("--out", type=Path, help="default: <study>.json")
     parser.add_argument("--figure", type=Path, help="default: docs/science/<study folder name>.png")
+    parser.add_argument("--markdown", action="store_true", help="also print the table the docs show")
     args = parser.parse_args(argv)
     data = curve(args.study, args.key)
     out = args.out or args.study.with_suffix(".json")
@@ -142,6 +181,8 @@ def main(argv: list[str] | None = None) -> None:
             + (f", held out {held['gain_mean']:+.1f}" if held else "")
         )
     print(f"wrote {out} and {figure}")
+    if args.markdown:
+        print(markdown_table(data), end="")
 
 
 if __name__ == "__main__":

@@ -64,3 +64,32 @@ def test_a_study_with_no_recorded_length_is_refused(tmp_path: Path) -> None:
     (tmp_path / "steps-100").mkdir()
     with pytest.raises(SystemExit, match="no recorded length"):
         compute_curve.curve(tmp_path, KEY)
+
+
+# -- the committed study -----------------------------------------------------------------------------------------------
+
+UMAZE_STUDY = SCIENCE / "maze2d-umaze-compute"
+TABLE_MARKER = "<!-- compute: metrics/science/maze2d-umaze-compute.json -->"
+
+
+def test_the_committed_curve_is_what_its_committed_records_give() -> None:
+    """metrics/science/maze2d-umaze-compute.json is the script's output over the committed lengths, unedited."""
+    committed = json.loads(UMAZE_STUDY.with_suffix(".json").read_text())
+    assert compute_curve.curve(UMAZE_STUDY, "pretrain.steps") == committed
+    assert len(committed["lengths"]) >= 3 and {e["n_seeds"] for e in committed["lengths"]} == {3}
+
+
+def docs_table(text: str) -> str:
+    lines = text.splitlines()
+    start = lines.index(TABLE_MARKER) + 1
+    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
+    return "\n".join(lines[start:end]) + "\n"
+
+
+def test_the_docs_table_is_the_committed_curve() -> None:
+    text = (REPO / "docs" / "results.md").read_text()
+    data = json.loads(UMAZE_STUDY.with_suffix(".json").read_text())
+    assert docs_table(text) == compute_curve.markdown_table(data)
+    gain = data["lengths"][0]["gain"]
+    gain["gain_mean"] += 0.1  # a changed figure no longer matches
+    assert docs_table(text) != compute_curve.markdown_table(data)

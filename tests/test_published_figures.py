@@ -251,7 +251,7 @@ def check(text: str, heading: str) -> list[str]:
         return [f"{heading!r}: no table marked <!-- figures: ... -->"]
     errors = [e for table in tables for e in check_table(table)]
     allowed = set().union(*(allowed_triples(t.sources) for t in tables))
-    prose = "\n".join(line for line in part.splitlines() if not line.startswith("|"))
+    prose = " ".join(line for line in part.splitlines() if not line.startswith("|"))  # an interval may wrap
     for m in TRIPLE.finditer(prose):
         parts = m.groups()
         if any(len(p.split(".")[1]) != 1 for p in parts) or tuple(map(float, parts)) not in allowed:
