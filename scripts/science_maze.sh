@@ -11,10 +11,15 @@
 # again (remove its summary to rerun it), DVC skips or restores (run cache) the trained models, training resumes from
 # its checkpoint, and the uncached stages (discrimination, evaluations: minutes) rerun. So a run restored on another
 # machine in its second pass needs the first pass's record carried (summary, per-seed folder, params), not its
-# models. Long: run it in the background (docs/operations.md, long runs),
+# models. Arguments name the passes to run, in order (default: plans rollouts); `rollouts` alone trains its own
+# control. Long: run it in the background (docs/operations.md, long runs),
 #   adaptdiffuser profile science-medium && adaptdiffuser run start -- bash scripts/science_maze.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
+recipes=${*:-plans rollouts}
+for recipe in $recipes; do
+  case $recipe in plans|rollouts) ;; *) echo "science_maze.sh: unknown recipe '$recipe' (plans or rollouts)" >&2; exit 2;; esac
+done
 task=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve"])')
 tasks=$(python -c 'import yaml; print(" ".join(yaml.safe_load(open("params.yaml"))["tasks"]))')
 trap 'adaptdiffuser set evolution.generate.recipe=plans > /dev/null' EXIT   # params.yaml as the profile wrote it
@@ -28,7 +33,7 @@ done_here() {  # pass $1 finished in this run with these params: its record whol
     cmp -s "$record.params.yaml" params.yaml &&
     [ "$(git rev-parse -q --verify "HEAD:$record.json" || true)" != "$(git hash-object "$record.json")" ]
 }
-for recipe in plans rollouts; do
+for recipe in $recipes; do
   name=$task
   [ "$recipe" = plans ] || name=$task-$recipe
   adaptdiffuser set "evolution.generate.recipe=$recipe" > /dev/null
@@ -47,4 +52,4 @@ for recipe in plans rollouts; do
   copy_whole params.yaml "metrics/science/$name.params.yaml"
   copy_whole metrics/summary.json "metrics/science/$name.json"
 done
-adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"
+[ "$recipes" != "plans rollouts" ] || adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"
