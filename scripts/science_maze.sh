@@ -16,9 +16,10 @@
 #   adaptdiffuser profile science-medium && adaptdiffuser run start -- bash scripts/science_maze.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
-recipes=${*:-plans rollouts}
+known=$(python -c 'from adaptdiffuser.families.maze2d.params import RECIPES; print(" ".join(RECIPES))')
+recipes=${*:-$known}
 for recipe in $recipes; do
-  case $recipe in plans|rollouts) ;; *) echo "science_maze.sh: unknown recipe '$recipe' (plans or rollouts)" >&2; exit 2;; esac
+  [[ " $known " == *" $recipe "* ]] || { echo "science_maze.sh: unknown recipe '$recipe' (${known// / or })" >&2; exit 2; }
 done
 task=$(python -c 'import yaml; print(yaml.safe_load(open("params.yaml"))["evolve"])')
 tasks=$(python -c 'import yaml; print(" ".join(yaml.safe_load(open("params.yaml"))["tasks"]))')
@@ -52,4 +53,4 @@ for recipe in $recipes; do
   copy_whole params.yaml "metrics/science/$name.params.yaml"
   copy_whole metrics/summary.json "metrics/science/$name.json"
 done
-[ "$recipes" != "plans rollouts" ] || adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"
+[ "$recipes" != "$known" ] || adaptdiffuser gains "metrics/science/$task.json" "metrics/science/$task-rollouts.json"
